@@ -1,0 +1,86 @@
+"""The one settings object of the service (``FLEETMAP_*`` environment variables), read once."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MIB = 1024 * 1024
+
+
+class Settings(BaseSettings):
+    """Deployment configuration. Units: metres, seconds, bytes."""
+
+    model_config = SettingsConfigDict(env_prefix="FLEETMAP_", env_file=None, extra="ignore")
+
+    data_dir: Path = Field(default=Path("./fleetmap-data"), description="Root of embedded state")
+    database_url: str = Field(default="", description="SQLAlchemy URL; empty: SQLite under data_dir")
+    broker_url: str = Field(default="", description="Celery broker URL; empty: embedded worker, no broker")
+    blob_url: str = Field(default="", description="Blob store URL; empty: file://<data_dir>/blobs")
+    tile_size: float = Field(default=64.0, gt=0, description="Tile edge length, metres")
+    origin: str = Field(default="48.2620,11.6670,480.0", description="Map frame origin 'lat,lon,alt'")
+    fuse_debounce_s: float = Field(default=30.0, ge=0)
+    fuse_max_wait_s: float = Field(default=600.0, ge=0)
+    auth: Literal["on", "off"] = "on"
+    max_upload_bytes: int = Field(default=64 * MIB, gt=0)
+    max_faces: int = Field(default=2_000_000, gt=0)
+    max_coordinate_m: float = Field(default=1000.0, gt=0)
+    fusion_preset: str = "cpu"
+    fusion_queue: str = "fusion"
+    scheduler_interval_s: float = Field(default=5.0, gt=0)
+    lease_s: float = Field(default=1800.0, gt=0, description="Fusion lease length per tile, seconds")
+    log_level: str = "INFO"
+    log_json: bool = False
+
+    @field_validator("auth", mode="before")
+    @classmethod
+    def _auth_bool(cls, value: object) -> object:
+        """Accept the usual boolean spellings for ``FLEETMAP_AUTH``."""
+        if isinstance(value, bool):
+            return "on" if value else "off"
+        if isinstance(value, str):
+            lowered = value.strip().lower()
+            if lowered in {"1", "true", "yes", "on"}:
+                return "on"
+            if lowered in {"0", "false", "no", "off"}:
+                return "off"
+        return value
+
+    @property
+    def auth_enabled(self) -> bool:
+        return self.auth == "on"
+
+    @property
+    def embedded(self) -> bool:
+        """True when no broker server is configured (jobs run inside the serve process)."""
+        return not self.broker_url
+
+    @property
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'fleetmap.db').resolve()}"
+
+    @property
+    def resolved_blob_url(self) -> str:
+        if self.blob_url:
+            return self.blob_url
+        return f"file://{(self.data_dir / 'blobs').resolve()}"
+
+    @property
+    def origin_lla(self) -> tuple[float, float, float]:
+        """The map frame's geodetic origin (degrees, degrees, metres)."""
+        parts = [float(p) for p in self.origin.split(",")]
+        if len(parts) != 3:
+            raise ValueError("FLEETMAP_ORIGIN must be 'lat,lon,alt'")
+        return parts[0], parts[1], parts[2]
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process-wide settings (read from the environment once)."""
+    return Settings()
