@@ -195,7 +195,7 @@ def _schema(header: plyfile.PlyData) -> str:
 def _triangulate(lists: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """Fan-triangulate face index lists; returns triangles (m, 3) int64 and each one's source face."""
     if lists.dtype != object:  # memory-mapped path: all faces are triangles
-        tris = lists.reshape(len(lists), -1).astype(np.int64)
+        tris = lists.astype(np.int64).reshape(len(lists), lists.shape[-1])
         lengths = np.full(len(tris), tris.shape[1], dtype=np.int64)
         flat = tris.reshape(-1)
     else:
@@ -463,9 +463,10 @@ def write_glb(mesh: FusedMesh) -> bytes:
         vertex_colors=rgba,
         process=False,
     )
+    if len(geometry.faces) == 0:
+        return geometry.export(file_type="glb")  # trimesh refuses to export an empty Scene
     scene = trimesh.Scene()
-    if len(geometry.faces):
-        scene.add_geometry(geometry, geom_name="tile", node_name="tile", transform=MAP_TO_GLTF)
+    scene.add_geometry(geometry, geom_name="tile", node_name="tile", transform=MAP_TO_GLTF)
     return scene.export(file_type="glb")
 
 
