@@ -32,10 +32,43 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cursor.close()
 
 
-def make_engine(url: str) -> Engine:
-    """An engine for ``url``; creates the parent folder of a SQLite file."""
+def postgres_engine_options(settings: Settings | None = None) -> dict[str, Any]:
+    """Production pool and connection options for PostgreSQL (psycopg 3).
+
+    Pre-ping drops connections a server restart killed; connect/pool timeouts turn an outage into
+    fast errors (503) instead of hung requests; TCP keepalives and ``tcp_user_timeout`` detect a
+    silently dead peer; ``statement_timeout`` bounds every statement server-side.
+    """
+    s = settings or Settings()
+    options = f"-c statement_timeout={s.db_statement_timeout_ms}" if s.db_statement_timeout_ms else ""
+    connect_args: dict[str, Any] = {
+        "connect_timeout": s.db_connect_timeout_s,
+        "keepalives": 1,
+        "keepalives_idle": 30,
+        "keepalives_interval": 10,
+        "keepalives_count": 3,
+        "tcp_user_timeout": s.db_connect_timeout_s * 1000 + 10_000,
+        "application_name": "fleetmap",
+    }
+    if options:
+        connect_args["options"] = options
+    return {
+        "pool_pre_ping": True,
+        "pool_size": s.db_pool_size,
+        "max_overflow": s.db_max_overflow,
+        "pool_timeout": s.db_pool_timeout_s,
+        "pool_recycle": s.db_pool_recycle_s,
+        "connect_args": connect_args,
+    }
+
+
+def make_engine(url: str, settings: Settings | None = None) -> Engine:
+    """An engine for ``url``; creates the parent folder of a SQLite file. PostgreSQL gets the pool
+    and timeout options of :func:`postgres_engine_options` (from ``settings``, else defaults)."""
     parsed = make_url(url)
     kwargs: dict[str, Any] = {"pool_pre_ping": True}
+    if parsed.get_backend_name() == "postgresql":
+        kwargs = postgres_engine_options(settings)
     if parsed.get_backend_name() == "sqlite":
         if parsed.database and parsed.database != ":memory:":
             Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
@@ -48,7 +81,7 @@ def make_engine(url: str) -> Engine:
 
 def engine_from_settings(settings: Settings) -> Engine:
     """The engine for the configured database."""
-    return make_engine(settings.resolved_database_url)
+    return make_engine(settings.resolved_database_url, settings)
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:

@@ -33,6 +33,14 @@ class Settings(BaseSettings):
     fusion_queue: str = "fusion"
     scheduler_interval_s: float = Field(default=5.0, gt=0)
     lease_s: float = Field(default=1800.0, gt=0, description="Fusion lease length per tile, seconds")
+    # PostgreSQL connection handling (ignored on SQLite). Small timeouts: an outage must give quick
+    # 503s, never requests that hang.
+    db_pool_size: int = Field(default=10, ge=1, description="Connections kept open per process")
+    db_max_overflow: int = Field(default=20, ge=0, description="Extra connections under load per process")
+    db_pool_timeout_s: float = Field(default=5.0, gt=0, description="Wait for a free pooled connection")
+    db_connect_timeout_s: int = Field(default=5, ge=1, description="TCP/TLS connect timeout, seconds")
+    db_statement_timeout_ms: int = Field(default=30_000, ge=0, description="Per statement; 0: none")
+    db_pool_recycle_s: float = Field(default=1800.0, gt=0, description="Reopen connections older than this")
     log_level: str = "INFO"
     log_json: bool = False
 
