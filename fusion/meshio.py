@@ -12,6 +12,7 @@ import struct
 import tempfile
 import warnings
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 import plyfile
@@ -21,7 +22,11 @@ from fusion.errors import MeshValidationError
 from fusion.labels import LABELS, UNLABELED
 from fusion.types import FusedMesh, SemanticMesh
 
-ENCODINGS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
+ENCODINGS: dict[str, Literal["=", "<", ">"]] = {
+    "ascii": "=",
+    "binary_little_endian": "<",
+    "binary_big_endian": ">",
+}
 LABEL_NAMES = ("label", "class", "semantic")  # first present wins within an element
 INDEX_NAMES = ("vertex_indices", "vertex_index")
 UNKNOWN_LABEL_COLOR = (128, 128, 128)  # colour of ids beyond the default label table
@@ -194,14 +199,15 @@ def _schema(header: plyfile.PlyData) -> str:
 
 def _triangulate(lists: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """Fan-triangulate face index lists; returns triangles (m, 3) int64 and each one's source face."""
+    flat: np.ndarray
     if lists.dtype != object:  # memory-mapped path: all faces are triangles
         tris = lists.astype(np.int64).reshape(len(lists), lists.shape[-1])
         lengths = np.full(len(tris), tris.shape[1], dtype=np.int64)
         flat = tris.reshape(-1)
     else:
         lengths = np.fromiter((len(f) for f in lists), dtype=np.int64, count=len(lists))
-        flat = np.concatenate([np.asarray(f, dtype=np.int64) for f in lists]) if len(lists) else np.zeros(0)
-        flat = flat.astype(np.int64)
+        chunks = [np.asarray(f, dtype=np.int64).reshape(-1) for f in lists]
+        flat = np.concatenate(chunks) if chunks else np.zeros(0, dtype=np.int64)
     short = np.flatnonzero(lengths < 3)
     if short.size:
         raise _fail(
@@ -361,7 +367,8 @@ def _encode(elements: list[tuple[str, np.ndarray]], encoding: str) -> bytes:
         return stream.getvalue()
     stream.write(ply.header.encode("ascii") + b"\n")
     for _, arr in elements:
-        fields, values = [], []
+        fields: list[tuple[Any, ...]] = []
+        values: list[np.ndarray] = []
         for name in arr.dtype.names or ():
             base, shape = arr.dtype[name].base, arr.dtype[name].shape
             if shape:
@@ -464,10 +471,14 @@ def write_glb(mesh: FusedMesh) -> bytes:
         process=False,
     )
     if len(geometry.faces) == 0:
-        return geometry.export(file_type="glb")  # trimesh refuses to export an empty Scene
-    scene = trimesh.Scene()
-    scene.add_geometry(geometry, geom_name="tile", node_name="tile", transform=MAP_TO_GLTF)
-    return scene.export(file_type="glb")
+        data = geometry.export(file_type="glb")  # trimesh refuses to export an empty Scene
+    else:
+        scene = trimesh.Scene()
+        scene.add_geometry(geometry, geom_name="tile", node_name="tile", transform=MAP_TO_GLTF)
+        data = scene.export(file_type="glb")
+    if not isinstance(data, bytes):
+        raise TypeError(f"trimesh returned {type(data).__name__} for a GLB export")
+    return data
 
 
 def filter_confidence(mesh: FusedMesh, min_confidence: float) -> FusedMesh:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import io
 import struct
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import plyfile
@@ -421,3 +424,9 @@ def test_filter_confidence_reindexes_after_a_dropped_vertex() -> None:
     kept = filter_confidence(mesh, 0.7)
     np.testing.assert_array_equal(kept.faces, [[0, 2, 1]])  # old vertices 2, 4, 3 -> 0, 2, 1
     np.testing.assert_array_equal(kept.vertices, mesh.vertices[[2, 3, 4]])
+
+
+def test_io_and_geometry_modules_do_not_import_torch() -> None:
+    code = "import sys, fusion.meshio, fusion.geo, fusion.tiles; sys.exit('torch' in sys.modules)"
+    root = Path(__file__).resolve().parents[1]
+    assert subprocess.run([sys.executable, "-c", code], cwd=root, check=False).returncode == 0
