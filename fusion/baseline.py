@@ -106,13 +106,11 @@ def _register(source: np.ndarray, target: np.ndarray, init: np.ndarray, cfg: Bas
     result = None
     for dist in cfg.max_correspondence_m:
         if cfg.method == "gicp":
-            estimation = reg.TransformationEstimationForGeneralizedICP(
-                epsilon=1e-3, kernel=reg.HuberLoss(dist / 2)
-            )
-            result = reg.registration_generalized_icp(src, tgt, dist, transform, estimation, criteria)
+            gicp = reg.TransformationEstimationForGeneralizedICP(epsilon=1e-3, kernel=reg.HuberLoss(dist / 2))
+            result = reg.registration_generalized_icp(src, tgt, dist, transform, gicp, criteria)
         else:
-            estimation = reg.TransformationEstimationPointToPoint()
-            result = reg.registration_icp(src, tgt, dist, transform, estimation, criteria)
+            p2p = reg.TransformationEstimationPointToPoint()
+            result = reg.registration_icp(src, tgt, dist, transform, p2p, criteria)
         transform = result.transformation
     final_dist = cfg.max_correspondence_m[-1]
     info = reg.get_information_matrix_from_point_clouds(src, tgt, final_dist, transform)
@@ -127,7 +125,7 @@ def align(submaps: list[SubmapInput], cfg: BaselineConfig) -> tuple[dict[str, Po
     rng = np.random.default_rng(cfg.seed)
     init = [s.pose_init.matrix() for s in submaps]
     if cfg.method == "gps" or len(submaps) < 2:
-        return {s.id: s.pose_init for s in submaps}, {"pairs": 0, "loop_edges": 0}
+        return {s.id: s.pose_init for s in submaps}, {"pairs": 0, "loop_edges": 0, "odometry_edges": 0}
 
     local = [sample_oriented(s.mesh, cfg.icp_points, rng).points for s in submaps]
     posed = [s.pose_init.apply(p) for s, p in zip(submaps, local, strict=True)]
@@ -185,7 +183,11 @@ def align(submaps: list[SubmapInput], cfg: BaselineConfig) -> tuple[dict[str, Po
         s.id: Pose.from_matrix(anchor_inv @ np.asarray(graph.nodes[k + 1].pose))
         for k, s in enumerate(submaps)
     }
-    stats = {"pairs": len(pairs), "loop_edges": loop_edges, "odometry_edges": odometry_edges}
+    stats: dict[str, float] = {
+        "pairs": len(pairs),
+        "loop_edges": loop_edges,
+        "odometry_edges": odometry_edges,
+    }
     return poses, stats
 
 
