@@ -1,0 +1,126 @@
+"""Fusion hyperparameters: one dataclass, named presets, recorded with every fused tile version.
+
+Units: metres for lengths, radians per Adam step for the rotation learning rate, metres per Adam step
+for the translation learning rate. Coordinates fed to the grid are the tile box normalised to
+[0, 1]³ (see ``fusion.field.TileNormalizer``).
+
+Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
+- Pose learning rates are 3e-2 m and 1e-3 rad per step (paper: 1e-2 / 1e-4): with a few hundred
+  decaying Adam steps, 1e-4 rad/step cannot undo a 1.5° GPS heading error nor 1e-2 m/step a 3 m
+  (2σ) GPS offset. Tune per deployment.
+- Confidence targets of surface samples are the cross-session consensus (fraction of the sessions
+  covering a point that also observed a surface there) instead of a constant 1, so objects seen by one
+  session of many fall below ``c_th`` independent of the grid resolution (``consensus_*``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+GRID_TYPES = ("hash", "dense", "octree")
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    # feature grid
+    grid_type: str = "hash"  # "hash"; "dense" / "octree" are hooks for alternative FeatureGrids
+    num_levels: int = 12
+    features_per_level: int = 2
+    log2_table_size: int = 16
+    base_resolution: int = 16  # cells along the longest tile-box side at the coarsest level
+    max_resolution: int = 512  # cells along the longest side at the finest level
+    # positional encoding and heads
+    pe_frequencies: int = 6  # sin/cos(2^k π x01), k < pe_frequencies
+    geo_hidden: int = 64
+    geo_layers: int = 2
+    sem_hidden: int = 64
+    sem_layers: int = 2
+    # loss weights
+    lambda_sdf: float = 1.0
+    lambda_norm: float = 1.0
+    lambda_sem: float = 1.0
+    lambda_eik: float = 0.1
+    lambda_conf: float = 1.0
+    lambda_odom: float = 1.0
+    lambda_gps: float = 1e-2
+    sigma_s: float = 0.05  # metres, std of the surface-sample offset along the normal
+    # optimiser
+    lr_field: float = 1e-2
+    lr_pose_trans: float = 3e-2  # metres per step
+    lr_pose_rot: float = 1e-3  # radians per step
+    weight_decay: float = 1e-2
+    lr_decay_final: float = 0.1  # exponential decay: lr(end) = lr · lr_decay_final
+    iterations: int = 300
+    pose_warmup: int = 10  # iterations with frozen poses so the field first takes a rough shape
+    surface_samples: int = 4096
+    space_samples: int = 4096
+    normal_fraction: float = 0.25  # fraction of samples with numerical normals / eikonal
+    normal_eps_cells: float = 1.0  # central-difference step in cells of the finest active level
+    # progressive level of detail
+    lod_start_levels: int = 6
+    lod_full_fraction: float = 0.6  # all levels active after this fraction of the iterations
+    # confidence
+    c_th: float = 0.7
+    consensus: bool = True
+    consensus_radius_m: float = 0.5
+    consensus_at: tuple[float, ...] = (0.4, 0.7)  # fractions of training at which targets are recomputed
+    pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
+    # tile geometry and extraction
+    tile_margin_m: float = 8.0
+    slab_pad_m: float = 2.0  # height slab = data z-range ± this
+    slab_max_m: float = 40.0
+    extract_voxel_m: float = 0.25
+    extract_block: int = 4  # coarse narrow-band block, in voxels
+    extract_chunk: int = 65536
+    # run
+    seed: int = 0
+    device: str = "auto"  # "auto" → CUDA when available, else CPU
+
+    def __post_init__(self) -> None:
+        if self.grid_type not in GRID_TYPES:
+            raise ValueError(f"grid_type must be one of {GRID_TYPES}, got {self.grid_type!r}")
+        if self.lod_start_levels > self.num_levels:
+            raise ValueError("lod_start_levels must not exceed num_levels")
+
+    @staticmethod
+    def preset(name: str = "cpu") -> FusionConfig:
+        """``"cpu"``: 64 m tiles on 2 CPU cores in about a minute; ``"paper"``: the paper's sizes (GPU)."""
+        if name == "cpu":
+            return FusionConfig()
+        if name == "paper":
+            return FusionConfig(
+                num_levels=16,
+                features_per_level=2,
+                log2_table_size=16,
+                base_resolution=16,
+                max_resolution=2048,
+                geo_hidden=128,
+                sem_hidden=128,
+                iterations=500,
+                surface_samples=125_000,
+                space_samples=125_000,
+                normal_fraction=0.1,
+                lod_start_levels=8,
+                pool_points=2_000_000,
+                extract_voxel_m=0.1,
+                extract_block=8,
+                extract_chunk=262_144,
+            )
+        raise ValueError(f"unknown preset {name!r} (cpu, paper)")
+
+    def with_(self, **changes: Any) -> FusionConfig:
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> FusionConfig:
+        """Inverse of ``to_dict``; unknown keys are rejected so typos do not pass silently."""
+        known = {f.name for f in fields(FusionConfig)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown FusionConfig keys: {sorted(unknown)}")
+        data = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return FusionConfig(**data)

@@ -1,0 +1,204 @@
+"""Mesh extraction on the global lattice: narrow-band SDF evaluation, border pins, marching cubes.
+
+Lattice: points at integer multiples of ``voxel_m`` in the *map* frame, so neighbouring tiles' lattices
+coincide. A tile evaluates ``x ∈ [i·S, (i+1)·S]`` and ``y ∈ [j·S, (j+1)·S]`` *inclusive of both
+borders* × its height slab. The SDF is first evaluated on a coarse lattice (every ``block`` voxels, one
+block beyond the tile so both neighbours take the same decision on shared planes); only blocks near
+the surface are evaluated at full resolution, the rest are filled by trilinear upsampling of the
+coarse values (no zero crossing there by construction).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from skimage.measure import marching_cubes
+
+from fusion.types import FusedMesh, TileSpec
+
+SdfFn = Callable[[np.ndarray], np.ndarray]  # (n, 3) map-frame metres → (n,) signed distance
+AttrFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # (n, 3) → confidence (n,), label (n,)
+StepFn = Callable[[int, int], None]  # (done, total) progress
+
+
+@dataclass
+class Lattice:
+    """Global lattice indices of the tile's extraction volume: axis ``a`` spans ``k0[a] … k1[a]``."""
+
+    voxel_m: float
+    k0: tuple[int, int, int]
+    k1: tuple[int, int, int]
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.k1[0] - self.k0[0] + 1, self.k1[1] - self.k0[1] + 1, self.k1[2] - self.k0[2] + 1)
+
+
+def tile_lattice(tile: TileSpec, z_min: float, z_max: float, voxel_m: float) -> Lattice:
+    """Lattice of a tile (map frame): lattice points inside the closed tile square × [z_min, z_max]."""
+    tol = 1e-6
+    lo = [math.ceil(c / voxel_m - tol) for c in tile.xy_min]
+    hi = [math.floor(c / voxel_m + tol) for c in tile.xy_max]
+    return Lattice(voxel_m, (lo[0], lo[1], math.floor(z_min / voxel_m)), (hi[0], hi[1], math.ceil(z_max / voxel_m)))
+
+
+def _eval(fn: SdfFn, k: np.ndarray, voxel_m: float) -> np.ndarray:
+    return np.asarray(fn(k.astype(np.float64) * voxel_m), dtype=np.float64)
+
+
+def narrow_band_sdf(
+    sdf_fn: SdfFn, lat: Lattice, block: int, band_factor: float = 1.5, step: StepFn | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """SDF volume (nx, ny, nz) float64 on the lattice and the mask of exactly evaluated points."""
+    b, v = block, lat.voxel_m
+    c0 = [math.floor(lat.k0[a] / b) - (1 if a < 2 else 0) for a in range(3)]
+    c1 = [math.ceil(lat.k1[a] / b) + (1 if a < 2 else 0) for a in range(3)]
+    axes = [np.arange(c0[a], c1[a] + 1) * b for a in range(3)]
+    ck = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    coarse = _eval(sdf_fn, ck, v).reshape(*(len(ax) for ax in axes))
+    if step:
+        step(1, 3)
+    # band blocks: a corner close to the surface (|s| below the block diagonal) or a sign change
+    corners = [coarse[dx : coarse.shape[0] - 1 + dx, dy : coarse.shape[1] - 1 + dy, dz : coarse.shape[2] - 1 + dz]
+               for dx, dy, dz in itertools.product((0, 1), repeat=3)]
+    cs = np.stack(corners)
+    thr = band_factor * math.sqrt(3) * b * v
+    band = (np.abs(cs).min(0) < thr) | ((cs > 0).any(0) & (cs < 0).any(0))
+    # a fine point is exact when any block containing it is in the band
+    mask = np.zeros(lat.shape, bool)
+    idx_sets = []
+    for a in range(3):
+        f = np.arange(lat.k0[a], lat.k1[a] + 1) - c0[a] * b
+        first = np.minimum(f // b, band.shape[a] - 1)
+        second = np.where(f % b == 0, np.maximum(f // b - 1, 0), first)
+        idx_sets.append((first, second))
+    for choice in itertools.product((0, 1), repeat=3):
+        mask |= band[np.ix_(idx_sets[0][choice[0]], idx_sets[1][choice[1]], idx_sets[2][choice[2]])]
+    # fill: trilinear upsampling of the coarse lattice, then exact values in the band
+    up = F.interpolate(
+        torch.from_numpy(coarse)[None, None],
+        size=tuple((n - 1) * b + 1 for n in coarse.shape),
+        mode="trilinear",
+        align_corners=True,
+    )[0, 0].numpy()
+    off = [lat.k0[a] - c0[a] * b for a in range(3)]
+    vol = up[off[0] : off[0] + lat.shape[0], off[1] : off[1] + lat.shape[1], off[2] : off[2] + lat.shape[2]].copy()
+    if step:
+        step(2, 3)
+    where = np.argwhere(mask)
+    if len(where):
+        vol[mask] = _eval(sdf_fn, where + np.asarray(lat.k0), v)
+    if step:
+        step(3, 3)
+    return vol, mask
+
+
+SIDES = {"x0": (0, 0), "x1": (0, -1), "y0": (1, 0), "y1": (1, -1)}
+
+
+def border_planes(vol: np.ndarray, lat: Lattice) -> dict[str, dict[str, Any]]:
+    """SDF on the 4 border planes with their global lattice placement (see ``apply_border_pins``)."""
+    out = {}
+    for name, (axis, side) in SIDES.items():
+        plane = vol[side] if axis == 0 else vol[:, side]
+        k = lat.k0[axis] if side == 0 else lat.k1[axis]
+        rest = [a for a in range(3) if a != axis]
+        out[name] = {"axis": axis, "k": k, "k0": [lat.k0[a] for a in rest], "voxel_m": lat.voxel_m,
+                     "sdf": plane.copy()}
+    return out
+
+
+def _pin_entries(pins: Any) -> list[dict[str, Any]]:
+    """Border entries from a neighbour's ``border`` dict, a dict of them, or a list."""
+    if isinstance(pins, dict) and "sdf" in pins:
+        return [pins]
+    values = pins.values() if isinstance(pins, dict) else pins
+    return [e for v in values for e in _pin_entries(v)]
+
+
+def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any) -> int:
+    """Overwrite our border-plane SDF with neighbours' values where the planes (axis, global k) match;
+    returns the number of values pinned. Keys do not matter: the plane's lattice placement does."""
+    count = 0
+    for e in _pin_entries(pins):
+        if abs(float(e["voxel_m"]) - lat.voxel_m) > 1e-9:
+            continue
+        axis, k = int(e["axis"]), int(e["k"])
+        if k == lat.k0[axis]:
+            side = 0
+        elif k == lat.k1[axis]:
+            side = vol.shape[axis] - 1
+        else:
+            continue
+        sdf = np.asarray(e["sdf"], dtype=np.float64)
+        rest = [a for a in range(3) if a != axis]
+        ours, theirs = [], []
+        for r, (a, pk0) in enumerate(zip(rest, e["k0"], strict=True)):
+            lo, hi = max(lat.k0[a], int(pk0)), min(lat.k1[a], int(pk0) + sdf.shape[r] - 1)
+            if hi < lo:
+                break
+            ours.append(slice(lo - lat.k0[a], hi - lat.k0[a] + 1))
+            theirs.append(slice(lo - int(pk0), hi - int(pk0) + 1))
+        else:
+            target = vol[side] if axis == 0 else vol[:, side]
+            target[ours[0], ours[1]] = sdf[theirs[0], theirs[1]]
+            count += target[ours[0], ours[1]].size
+    return count
+
+
+def _face_labels(vl: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    a, b, c = vl[faces[:, 0]], vl[faces[:, 1]], vl[faces[:, 2]]
+    return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
+
+
+def extract_mesh(
+    sdf_fn: SdfFn,
+    attr_fn: AttrFn,
+    tile: TileSpec,
+    z_range: tuple[float, float],
+    voxel_m: float,
+    block: int = 4,
+    c_th: float = 0.7,
+    border_pins: Any = None,
+    step: StepFn | None = None,
+) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
+    """Fused mesh of one tile (map frame) from an SDF (positive in free space).
+
+    Returns the mesh (faces with a vertex below ``c_th`` dropped, unreferenced vertices removed), the
+    border planes (after pinning) and stats. Face normals (right-hand winding) point to free space.
+    """
+    lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)
+    vol, mask = narrow_band_sdf(sdf_fn, lat, block, step=step)
+    pinned = apply_border_pins(vol, lat, border_pins) if border_pins else 0
+    border = border_planes(vol, lat)
+    stats: dict[str, Any] = {"lattice_shape": list(lat.shape), "band_points": int(mask.sum()), "pinned": pinned}
+    if not ((vol > 0).any() and (vol < 0).any()):
+        return FusedMesh.empty(), border, stats
+    # "ascent" orients faces (right-hand winding) towards s > 0, i.e. outward into free space
+    verts_idx, faces, _, _ = marching_cubes(vol, level=0.0, gradient_direction="ascent")
+    verts = (verts_idx.astype(np.float64) + np.asarray(lat.k0, np.float64)) * voxel_m
+    stats["raw_faces"] = int(len(faces))
+    if len(faces) == 0:
+        return FusedMesh.empty(), border, stats
+    conf, labels = attr_fn(verts)
+    keep = (conf[faces] >= c_th).all(1)
+    faces = faces[keep]
+    used = np.unique(faces)
+    remap = np.full(len(verts), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    faces = remap[faces]
+    verts, conf, labels = verts[used], conf[used], labels[used]
+    vl = labels.astype(np.uint8)
+    mesh = FusedMesh(
+        verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32),
+        _face_labels(vl, faces).astype(np.uint8) if len(faces) else np.zeros(0, np.uint8),
+    )
+    stats["faces"] = int(len(faces))
+    return mesh, border, stats

@@ -1,0 +1,146 @@
+"""Feature grids: the ``FeatureGrid`` interface and a multi-resolution hash grid (instant-ngp style).
+
+Inputs are normalised coordinates ``x01`` in [0, 1]³ (the tile box, see ``fusion.field``). Levels
+whose cell count fits the table are indexed densely (no collisions); finer ones are hashed with the
+instant-ngp primes. Trilinear interpolation makes features continuous and differentiable in ``x``
+(pose gradients flow through the interpolation weights).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+PRIMES = (1, 2_654_435_761, 805_459_861)
+
+
+class FeatureGrid(nn.Module):
+    """Interface of a spatial feature grid: ``forward(x01: (n, 3)) -> (n, out_dim)``."""
+
+    out_dim: int
+    num_levels: int
+
+    def set_active_levels(self, k: int) -> None:
+        """Use only the ``k`` coarsest levels (finer ones output zeros): progressive LOD."""
+        raise NotImplementedError
+
+    def finest_active_cell(self) -> float:
+        """Cell size of the finest active level along the longest axis, in normalised units."""
+        raise NotImplementedError
+
+
+class _Gather(torch.autograd.Function):
+    """``table[idx]`` with an ``index_add_`` backward (faster on CPU than advanced indexing's
+    sort-based ``index_put_``)."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(idx)
+        ctx.num_rows = table.shape[0]
+        return table.index_select(0, idx)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        (idx,) = ctx.saved_tensors
+        out = torch.zeros(ctx.num_rows, grad.shape[1], dtype=grad.dtype, device=grad.device)
+        out.index_add_(0, idx, grad)
+        return out, None
+
+
+def gather_rows(table: Tensor, idx: Tensor, custom: bool = True) -> Tensor:
+    """Rows ``(m, f)`` of ``table`` ``(T, f)`` at flat indices ``idx`` ``(m,)``."""
+    if custom:
+        return _Gather.apply(table, idx)
+    return table[idx]
+
+
+class HashGrid(FeatureGrid):
+    """Multi-resolution hash grid.
+
+    Args:
+        num_levels, features_per_level, log2_table_size: sizes as in instant-ngp.
+        base_resolution, max_resolution: cells along the longest axis of [0, 1]³ at the coarsest /
+            finest level (geometric growth).
+        aspect: extent of each axis relative to the longest one (a 64 m × 64 m × 16 m tile box is
+            ``(1, 1, 0.25)``) so cells stay cubic in metres.
+    """
+
+    def __init__(
+        self,
+        num_levels: int = 16,
+        features_per_level: int = 2,
+        log2_table_size: int = 16,
+        base_resolution: int = 16,
+        max_resolution: int = 2048,
+        aspect: tuple[float, float, float] = (1.0, 1.0, 1.0),
+        init_scale: float = 1e-4,
+        custom_gather: bool = True,
+    ) -> None:
+        super().__init__()
+        self.num_levels = num_levels
+        self.features_per_level = features_per_level
+        self.out_dim = num_levels * features_per_level
+        self.table_size = 2**log2_table_size
+        self.custom_gather = custom_gather
+        growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(num_levels - 1, 1))
+        res = [int(math.floor(base_resolution * growth**lv)) for lv in range(num_levels)]
+        # per level, per axis: number of cells; the lattice has cells + 1 vertices per axis
+        cells = torch.tensor([[max(1, math.ceil(r * a)) for a in aspect] for r in res], dtype=torch.float32)
+        verts = cells.long() + 1
+        dense = verts.prod(-1) <= self.table_size
+        sizes = torch.where(dense, verts.prod(-1), torch.full_like(dense, self.table_size, dtype=torch.long))
+        offsets = torch.cat([torch.zeros(1, dtype=torch.long), sizes.cumsum(0)])
+        self.register_buffer("cells", cells, persistent=False)  # (L, 3)
+        self.register_buffer("verts", verts, persistent=False)  # (L, 3)
+        self.register_buffer("dense", dense, persistent=False)  # (L,)
+        self.register_buffer("sizes", sizes, persistent=False)  # (L,)
+        self.register_buffer("offsets", offsets[:-1].clone(), persistent=False)  # (L,)
+        self.register_buffer("level_mask", torch.ones(num_levels), persistent=False)  # (L,)
+        self.register_buffer("corners", torch.tensor(
+            [[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.long), persistent=False)
+        self.resolutions = res
+        self.active_levels = num_levels
+        self.table = nn.Parameter(
+            (torch.rand(int(offsets[-1]), features_per_level) * 2 - 1) * init_scale
+        )  # (sum of level sizes, F)
+
+    def set_active_levels(self, k: int) -> None:
+        self.active_levels = max(1, min(int(k), self.num_levels))
+        self.level_mask.zero_()
+        self.level_mask[: self.active_levels] = 1.0
+
+    def finest_active_cell(self) -> float:
+        return 1.0 / self.resolutions[self.active_levels - 1]
+
+    def forward(self, x01: Tensor) -> Tensor:
+        """Features ``(n, L·F)`` of points ``(n, 3)`` in [0, 1]³ (clamped into the grid)."""
+        n = x01.shape[0]
+        levels = self.active_levels
+        cells = self.cells[:levels]  # (l, 3)
+        pos = x01.clamp(0.0, 1.0)[:, None, :] * cells  # (n, l, 3) in cell units
+        base = pos.detach().floor().clamp_max(cells - 1)  # (n, l, 3), keeps x = 1 in the last cell
+        frac = pos - base  # (n, l, 3), differentiable in x
+        ib = base.long()[:, :, None, :] + self.corners  # (n, l, 8, 3)
+        verts = self.verts[:levels]
+        dense_idx = ib[..., 0] + verts[:, None, 0] * (ib[..., 1] + verts[:, None, 1] * ib[..., 2])
+        hashed = (ib[..., 0] * PRIMES[0]) ^ (ib[..., 1] * PRIMES[1]) ^ (ib[..., 2] * PRIMES[2])
+        hashed = hashed & (self.table_size - 1)
+        idx = torch.where(self.dense[:levels, None], dense_idx, hashed) + self.offsets[:levels, None]
+        feats = gather_rows(self.table, idx.reshape(-1), self.custom_gather)
+        feats = feats.view(n, levels, 8, self.features_per_level)
+        c = self.corners.to(frac.dtype)  # (8, 3)
+        w = (frac[:, :, None, :] * c + (1 - frac[:, :, None, :]) * (1 - c)).prod(-1)  # (n, l, 8)
+        out = (feats * w[..., None]).sum(2)  # (n, l, F)
+        if levels < self.num_levels:
+            pad = out.new_zeros(n, self.num_levels - levels, self.features_per_level)
+            out = torch.cat([out, pad], dim=1)
+        return out.reshape(n, self.out_dim)
+
+
+def make_grid(grid_type: str, aspect: tuple[float, float, float], **kwargs: int) -> FeatureGrid:
+    """Feature grid by name. "dense" and "octree" are reserved for alternative implementations."""
+    if grid_type == "hash":
+        return HashGrid(aspect=aspect, **kwargs)
+    raise NotImplementedError(f"grid_type {grid_type!r} is not implemented yet (available: 'hash')")

@@ -1,0 +1,188 @@
+"""Supervision samples for one tile: surface points (with SDF / normal / label targets) and space points.
+
+Frames: submap meshes are in their *local* frames; poses map local → *tile* frame, which is the map
+frame shifted by the tile origin (metres) so float32 keeps millimetre precision. Surface points are
+pre-sampled once (area-weighted) in the local frames and moved by the *current* poses every batch, so
+the SDF loss differentiates through the pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from fusion.types import SubmapInput
+
+
+@dataclass
+class SurfacePool:
+    """Pre-sampled surface points, local frames. Shapes: P points, M submaps."""
+
+    points: Tensor  # (P, 3) float32, local frame of its submap
+    normals: Tensor  # (P, 3) float32, unit, local frame
+    labels: Tensor  # (P,) int64
+    submap: Tensor  # (P,) int64 index into the tile's submap list
+    conf_target: Tensor  # (P,) float32 in [0, 1]: confidence target (cross-session consensus)
+
+
+@dataclass
+class SpaceBoxes:
+    """Per-submap local boxes (AABB grown by a margin and a height allowance) for space samples."""
+
+    lo: Tensor  # (M, 3) float32, local frame
+    hi: Tensor  # (M, 3) float32, local frame
+    weight: Tensor  # (M,) float32 sampling weight (box footprint inside the tile box)
+
+
+@dataclass
+class Batch:
+    """One batch, tile frame (metres)."""
+
+    surf_x: Tensor  # (n, 3) surface samples offset along the normal
+    surf_sdf: Tensor  # (n,) target signed distance ŝ
+    surf_normal: Tensor  # (n, 3) target unit normal
+    surf_label: Tensor  # (n,) target label (0 = ignore)
+    surf_conf: Tensor  # (n,) confidence target
+    space_x: Tensor  # (m, 3) space samples
+
+
+def face_geometry(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Face areas (m,) m² and unit normals (m, 3) (winding: counter-clockwise = outward)."""
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    dbl = np.linalg.norm(cross, axis=1)
+    return 0.5 * dbl, cross / np.maximum(dbl, 1e-12)[:, None]
+
+
+def sample_surface_pool(
+    submaps: list[SubmapInput],
+    init_tile: list[np.ndarray],
+    box_lo: np.ndarray,
+    box_hi: np.ndarray,
+    num_points: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Area-weighted points on all submap faces whose initially posed position lies in the tile box.
+
+    ``init_tile``: (4, 4) local → tile pose per submap. Returns local points (P, 3), local normals
+    (P, 3), labels (P,), submap index (P,).
+    """
+    areas, normals, tris, labels, owner = [], [], [], [], []
+    for k, sm in enumerate(submaps):
+        a, n = face_geometry(sm.mesh.vertices, sm.mesh.faces)
+        keep = a > 0
+        areas.append(a[keep])
+        normals.append(n[keep])
+        tris.append(sm.mesh.vertices[sm.mesh.faces[keep]])
+        labels.append(sm.mesh.face_labels[keep])
+        owner.append(np.full(int(keep.sum()), k))
+    area = np.concatenate(areas)
+    if area.size == 0 or area.sum() <= 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    tri_all, nrm_all = np.concatenate(tris), np.concatenate(normals)
+    lab_all, own_all = np.concatenate(labels), np.concatenate(owner)
+    prob = area / area.sum()
+
+    def draw(count: int) -> tuple[np.ndarray, ...]:
+        f = rng.choice(area.size, size=count, p=prob)
+        u, v = rng.random(count), rng.random(count)
+        flip = u + v > 1
+        u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+        t = tri_all[f]
+        p = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+        mats = np.stack(init_tile)[own_all[f]]
+        pt = np.einsum("nij,nj->ni", mats[:, :3, :3], p) + mats[:, :3, 3]
+        inside = np.all((pt >= box_lo) & (pt <= box_hi), axis=1)
+        return p[inside], nrm_all[f][inside], lab_all[f][inside], own_all[f][inside]
+
+    pilot = draw(20_000)
+    frac = max(len(pilot[0]) / 20_000, 1e-3)
+    out = draw(int(min(num_points / frac * 1.05 + 100, 20 * num_points)))
+    return tuple(a[:num_points] for a in out)  # type: ignore[return-value]
+
+
+def space_boxes(submaps: list[SubmapInput], height_m: float = 4.0, margin_m: float = 1.0) -> tuple[np.ndarray, ...]:
+    """Local AABBs (M, 3) lo / hi of each submap, grown by ``margin_m`` and to at least ``height_m``
+    above its lowest point so free space above flat submaps (roads) is sampled."""
+    lo, hi = [], []
+    for sm in submaps:
+        v = sm.mesh.vertices
+        a, b = v.min(0) - margin_m, v.max(0) + margin_m
+        b[2] = max(b[2], a[2] + margin_m + height_m)
+        lo.append(a)
+        hi.append(b)
+    return np.stack(lo), np.stack(hi)
+
+
+def transform(poses: Tensor, index: Tensor, points: Tensor) -> Tensor:
+    """Apply per-point poses ``poses[index]`` ((M, 4, 4) → (n, 4, 4)) to points ``(n, 3)``."""
+    t = poses[index]
+    return (t[:, :3, :3] @ points[:, :, None])[:, :, 0] + t[:, :3, 3]
+
+
+def sample_batch(
+    pool: SurfacePool,
+    boxes: SpaceBoxes,
+    poses: Tensor,
+    tile_lo: Tensor,
+    tile_hi: Tensor,
+    n_surf: int,
+    n_space: int,
+    sigma_s: float,
+    gen: torch.Generator,
+) -> Batch:
+    """Draw one batch. ``poses`` (M, 4, 4) float32 local → tile frame (gradients flow to surface samples).
+
+    Surface points move along their posed normal by ŝ ~ N(0, σ_s) (target SDF ŝ). Space points are uniform
+    in the posed submap boxes (pose detached) and kept inside the tile box ``[tile_lo, tile_hi]``.
+    """
+    dev = pool.points.device
+    idx = torch.randint(pool.points.shape[0], (n_surf,), generator=gen, device="cpu").to(dev)
+    sm = pool.submap[idx]
+    p = transform(poses, sm, pool.points[idx])
+    rot = poses[sm][:, :3, :3]
+    nrm = (rot @ pool.normals[idx][:, :, None])[:, :, 0]
+    s_hat = (torch.randn(n_surf, generator=gen, device="cpu") * sigma_s).to(dev)
+    x = p + s_hat[:, None] * nrm
+
+    want = int(n_space * 1.3) + 16
+    box = torch.multinomial(boxes.weight.cpu(), want, replacement=True, generator=gen).to(dev)
+    u = torch.rand(want, 3, generator=gen, device="cpu").to(dev)
+    local = boxes.lo[box] + u * (boxes.hi[box] - boxes.lo[box])
+    xs = transform(poses.detach(), box, local)
+    inside = ((xs >= tile_lo) & (xs <= tile_hi)).all(-1)
+    xs = xs[inside][:n_space]
+    return Batch(x, s_hat, nrm, pool.labels[idx], pool.conf_target[idx], xs)
+
+
+def consensus_targets(
+    pool_tile: np.ndarray,
+    pool_session: np.ndarray,
+    submap_session: np.ndarray,
+    local_from_tile: np.ndarray,
+    box_lo: np.ndarray,
+    box_hi: np.ndarray,
+    radius_m: float,
+) -> np.ndarray:
+    """Confidence target per pool point: (#sessions with a surface within ``radius_m``) / (#sessions
+    whose submap boxes cover the point). A surface that most passing sessions saw gets ≈ 1; an object
+    seen by one session of five gets ≈ 0.2. Points: (P, 3) tile frame; ``local_from_tile`` (M, 4, 4)."""
+    sessions = np.unique(submap_session)
+    near = np.zeros(len(pool_tile), np.int32)
+    cover = np.zeros(len(pool_tile), np.int32)
+    for s in sessions:
+        mine = pool_session == s
+        tree = cKDTree(pool_tile[mine])
+        d, _ = tree.query(pool_tile, k=1, distance_upper_bound=radius_m, workers=-1)
+        is_near = np.isfinite(d)
+        covered = np.zeros(len(pool_tile), bool)
+        for m in np.flatnonzero(submap_session == s):
+            loc = pool_tile @ local_from_tile[m, :3, :3].T + local_from_tile[m, :3, 3]
+            covered |= np.all((loc >= box_lo[m]) & (loc <= box_hi[m]), axis=1)
+        near += is_near
+        cover += covered | is_near
+    return (near / np.maximum(cover, 1)).astype(np.float32)
