@@ -1,0 +1,177 @@
+"""What one tile fusion reads: the fusion config, the tile's submaps, neighbour border pins, and the
+input fingerprint that makes a job idempotent.
+
+Frames: submap meshes are in their local frame; ``pose_init`` maps local → map frame (the refined pose
+when a fusion already refined it, else the GPS pose).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from fusion.config import FusionConfig
+from fusion.meshio import MeshLimits, read_submap_ply
+from fusion.types import Pose, Sigma, SubmapInput, TileSpec
+from service.blobs import BlobStore
+from service.models import Submap, SubmapTile, TileVersion
+from service.settings import Settings
+
+# Neighbour offsets by the side of *our* tile they touch: the left neighbour's "x1" plane is our "x0".
+NEIGHBOURS = {"x0": ((-1, 0), "x1"), "x1": ((1, 0), "x0"), "y0": ((0, -1), "y1"), "y1": ((0, 1), "y0")}
+# A tiny schedule for tests and smoke runs: a few iterations and a coarse lattice (seconds on 2 cores).
+TINY = {
+    "iterations": 30,
+    "pose_warmup": 5,
+    "surface_samples": 1024,
+    "space_samples": 1024,
+    "num_levels": 6,
+    "lod_start_levels": 4,
+    "max_resolution": 64,
+    "geo_hidden": 32,
+    "sem_hidden": 32,
+    "pool_points": 20_000,
+    "consensus": False,
+    "extract_voxel_m": 1.0,
+    "tile_margin_m": 2.0,
+}
+
+
+def fusion_config(settings: Settings) -> FusionConfig:
+    """The configured preset (``FLEETMAP_FUSION_PRESET``: ``cpu``, ``paper`` or ``tiny``)."""
+    if settings.fusion_preset == "tiny":
+        return FusionConfig.preset("cpu").with_(**TINY)
+    return FusionConfig.preset(settings.fusion_preset)
+
+
+@dataclass
+class TileInputs:
+    """Everything ``fuse_tile`` needs for one tile, plus the fingerprint of it.
+
+    ``submaps`` is empty until :func:`load_meshes` read the mesh blobs (the fingerprint needs none).
+    """
+
+    tile: TileSpec
+    config: FusionConfig
+    rows: list[tuple[Submap, Pose, bool]]  # (submap row, initial local → map pose, free)
+    fingerprint: str
+    submaps: list[SubmapInput] = field(default_factory=list)
+    border_pins: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def pose_init(self) -> dict[str, Pose]:
+        return {s.id: pose for s, pose, _ in self.rows}
+
+
+def _pose_init(submap: Submap) -> Pose:
+    return Pose.from_json(submap.pose_refined or submap.pose_gps)
+
+
+def fingerprint(tile: TileSpec, config: FusionConfig, submaps: list[tuple[Submap, Pose, bool]]) -> str:
+    """sha256 over the tile, the fusion config and the sorted submap ids, mesh hashes, initial poses."""
+    doc = {
+        "tile": [tile.i, tile.j, tile.size_m],
+        "config": config.to_dict(),
+        "submaps": sorted([s.id, s.mesh_sha256, pose.to_json(), free] for s, pose, free in submaps),
+    }
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+def pack_border(border: dict[str, Any]) -> bytes:
+    """``FusionResult.border`` (side → array, or side → {name: array}) as ``.npz`` bytes."""
+    flat: dict[str, np.ndarray] = {}
+    for side, value in border.items():
+        if isinstance(value, dict):
+            for name, array in value.items():
+                flat[f"{side}/{name}"] = np.asarray(array)
+        else:
+            flat[side] = np.asarray(value)
+    buffer = io.BytesIO()
+    np.savez(buffer, **flat)
+    return buffer.getvalue()
+
+
+def unpack_border(data: bytes) -> dict[str, Any]:
+    """Inverse of :func:`pack_border`."""
+    border: dict[str, Any] = {}
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        for key in npz.files:
+            value = npz[key]
+            plain = value.item() if value.ndim == 0 else value
+            if "/" in key:
+                side, name = key.split("/", 1)
+                border.setdefault(side, {})[name] = plain
+            else:
+                border[key] = plain
+    return border
+
+
+def _border_pins(db: Session, blobs: BlobStore, i: int, j: int) -> dict[str, Any]:
+    """Border samples of fused neighbours, keyed by our side (their opposite side's samples)."""
+    pins: dict[str, Any] = {}
+    for side, ((di, dj), their_side) in NEIGHBOURS.items():
+        border_sha = db.execute(
+            select(TileVersion.border_sha256)
+            .where(TileVersion.tile_i == i + di, TileVersion.tile_j == j + dj)
+            .order_by(TileVersion.version.desc())
+            .limit(1)
+        ).scalar_one_or_none()
+        if not border_sha:
+            continue
+        theirs = unpack_border(blobs.get(border_sha))
+        if their_side in theirs:
+            pins[side] = theirs[their_side]
+    return pins
+
+
+def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
+    """The submaps of tile (i, j) with their initial poses (home submaps free, others held fixed)."""
+    tile = TileSpec(i, j, settings.tile_size)
+    config = fusion_config(settings)
+    submaps = (
+        db.execute(
+            select(Submap)
+            .join(SubmapTile, SubmapTile.submap_id == Submap.id)
+            .where(SubmapTile.i == i, SubmapTile.j == j)
+            .order_by(Submap.session_id, Submap.seq)
+        )
+        .scalars()
+        .all()
+    )
+    rows = [(s, _pose_init(s), (s.home_i, s.home_j) == (i, j)) for s in submaps]
+    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows))
+
+
+def load_meshes(db: Session, blobs: BlobStore, settings: Settings, inputs: TileInputs) -> None:
+    """Read the submap meshes and the neighbours' border pins into ``inputs``."""
+    limits = MeshLimits(max_faces=settings.max_faces, max_coordinate_m=settings.max_coordinate_m)
+    inputs.submaps = [
+        SubmapInput(
+            id=s.id,
+            session_id=s.session_id,
+            seq=s.seq,
+            mesh=read_submap_ply(blobs.get(s.mesh_sha256), limits),
+            pose_init=pose,
+            odometry=Pose.from_json(s.odometry),
+            gps_sigma=Sigma(s.gps_sigma_trans_m, s.gps_sigma_rot_deg),
+            odometry_sigma=Sigma(s.odometry_sigma_trans_m, s.odometry_sigma_rot_deg),
+            free=free,
+        )
+        for s, pose, free in inputs.rows
+    ]
+    inputs.border_pins = _border_pins(db, blobs, inputs.tile.i, inputs.tile.j)
+
+
+def pose_change(a: Pose, b: Pose) -> tuple[float, float]:
+    """Translation (metres) and rotation angle (degrees) between two local → map poses."""
+    trans = float(np.linalg.norm(np.asarray(a.t) - np.asarray(b.t)))
+    dot = abs(float(np.dot(a.q, b.q)))
+    rot = float(np.degrees(2.0 * np.arccos(min(1.0, dot))))
+    return trans, rot
