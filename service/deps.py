@@ -1,0 +1,84 @@
+"""FastAPI dependencies, declared once as ``Annotated`` types (settings, DB session, blobs, caller)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session
+
+from service.auth import ANONYMOUS_OPERATOR, Principal, authenticate
+from service.blobs import BlobStore
+from service.models import Role
+from service.problems import ProblemError
+from service.settings import Settings
+
+
+def get_settings_dep(request: Request) -> Settings:
+    return request.app.state.settings  # type: ignore[no-any-return]
+
+
+def get_db(request: Request) -> Iterator[Session]:
+    """One session per request; routes commit explicitly, anything uncommitted is rolled back."""
+    session: Session = request.app.state.session_factory()
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def get_blobs(request: Request) -> BlobStore:
+    return request.app.state.blobs  # type: ignore[no-any-return]
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
+SessionDep = Annotated[Session, Depends(get_db)]
+BlobsDep = Annotated[BlobStore, Depends(get_blobs)]
+
+_bearer = HTTPBearer(
+    auto_error=False, description="`Authorization: Bearer <token>` (created with `fleetmap token create`)"
+)
+_CHALLENGE = {"WWW-Authenticate": "Bearer"}
+
+
+def get_principal(
+    settings: SettingsDep,
+    db: SessionDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> Principal:
+    """The caller; 401 without a valid token (any operator when ``FLEETMAP_AUTH=off``)."""
+    if not settings.auth_enabled:
+        return ANONYMOUS_OPERATOR
+    if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
+        raise ProblemError(401, "a bearer token is required", code="unauthenticated", headers=_CHALLENGE)
+    principal = authenticate(db, credentials.credentials)
+    if principal is None:
+        raise ProblemError(
+            401,
+            "the bearer token is invalid or revoked",
+            code="invalid_token",
+            headers={"WWW-Authenticate": 'Bearer error="invalid_token"'},
+        )
+    return principal
+
+
+def require_roles(*roles: Role) -> Callable[[Principal], Principal]:
+    """A dependency admitting only ``roles`` (403 otherwise)."""
+
+    def check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:
+        if principal.role not in roles:
+            allowed = ", ".join(r.value for r in roles)
+            raise ProblemError(
+                403, f"role {principal.role.value!r} may not do this (needs {allowed})", code="forbidden"
+            )
+        return principal
+
+    return check
+
+
+AnyRole = Annotated[Principal, Depends(require_roles(Role.vehicle, Role.operator, Role.reader))]
+Uploader = Annotated[Principal, Depends(require_roles(Role.vehicle, Role.operator))]
+Reader = Annotated[Principal, Depends(require_roles(Role.reader, Role.operator))]
+Operator = Annotated[Principal, Depends(require_roles(Role.operator))]

@@ -1,0 +1,225 @@
+"""``/v1/tiles``: tile states, operator-triggered fusion, fused mesh downloads."""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+import json
+import math
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.responses import FileResponse
+from sqlalchemy import and_, distinct, func, or_, select, tuple_
+
+from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
+from service.blobs import BlobNotFoundError, BlobStore
+from service.deps import BlobsDep, Operator, Reader, SessionDep, SettingsDep
+from service.models import Submap, SubmapTile, Tile, TileVersion
+from service.problems import ProblemError, problem_responses
+from service.scheduler import request_fusion
+from service.schemas import FuseAccepted, TileLinks, TilePage, TilePublic
+
+router = APIRouter(prefix="/v1/tiles", tags=["tiles"])
+
+MEDIA_TYPES = {"ply": "application/octet-stream", "glb": "model/gltf-binary"}
+IMMUTABLE = "public, max-age=31536000, immutable"
+
+
+def _counts(db: SessionDep, keys: list[tuple[int, int]]) -> dict[tuple[int, int], tuple[int, int]]:
+    """(submaps, distinct sessions) per tile."""
+    if not keys:
+        return {}
+    rows = db.execute(
+        select(SubmapTile.i, SubmapTile.j, func.count(), func.count(distinct(Submap.session_id)))
+        .join(Submap, Submap.id == SubmapTile.submap_id)
+        .where(tuple_(SubmapTile.i, SubmapTile.j).in_(keys))
+        .group_by(SubmapTile.i, SubmapTile.j)
+    ).all()
+    return {(i, j): (n, s) for i, j, n, s in rows}
+
+
+def tile_public(request: Request, tile: Tile, counts: tuple[int, int]) -> TilePublic:
+    return TilePublic(
+        i=tile.i,
+        j=tile.j,
+        state=tile.state,  # type: ignore[arg-type]
+        submaps=counts[0],
+        sessions=counts[1],
+        version=tile.version,
+        fused_at=tile.fused_at,
+        progress=min(max(tile.progress, 0.0), 1.0),
+        last_error=tile.last_error,
+        job_id=tile.job_id,
+        links=TileLinks(
+            self=str(request.url_for("get_tile", i=str(tile.i), j=str(tile.j))),
+            mesh=str(request.url_for("get_tile_mesh", i=str(tile.i), j=str(tile.j))),
+        ),
+    )
+
+
+def _encode_cursor(i: int, j: int) -> str:
+    return base64.urlsafe_b64encode(json.dumps([i, j]).encode()).decode().rstrip("=")
+
+
+def _decode_cursor(cursor: str) -> tuple[int, int]:
+    try:
+        i, j = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
+        return int(i), int(j)
+    except (binascii.Error, ValueError, TypeError, UnicodeDecodeError) as exc:
+        raise ProblemError(422, "cursor is not one this API returned", code="invalid_cursor") from exc
+
+
+def _parse_bbox(bbox: str, size: float) -> tuple[int, int, int, int]:
+    """Tile index range (i0, j0, i1, j1) touched by a map-frame box ``xmin,ymin,xmax,ymax`` (metres)."""
+    try:
+        xmin, ymin, xmax, ymax = (float(v) for v in bbox.split(","))
+    except ValueError as exc:
+        raise ProblemError(422, "bbox is 'xmin,ymin,xmax,ymax' in metres", code="invalid_bbox") from exc
+    if not all(math.isfinite(v) for v in (xmin, ymin, xmax, ymax)) or xmin > xmax or ymin > ymax:
+        raise ProblemError(
+            422, "bbox needs finite values with xmin <= xmax and ymin <= ymax", code="invalid_bbox"
+        )
+    return math.floor(xmin / size), math.floor(ymin / size), math.floor(xmax / size), math.floor(ymax / size)
+
+
+def _get_tile(db: SessionDep, i: int, j: int) -> Tile:
+    tile = db.get(Tile, (i, j))
+    if tile is None or not _counts(db, [(i, j)]):
+        raise ProblemError(404, f"tile ({i}, {j}) holds no submap", code="tile_not_found")
+    return tile
+
+
+@router.get("", operation_id="listTiles", response_model=TilePage, responses=problem_responses(401, 403, 422))
+def list_tiles(
+    request: Request,
+    db: SessionDep,
+    settings: SettingsDep,
+    _principal: Reader,
+    state: Annotated[Literal["dirty", "queued", "fusing", "fused", "failed"] | None, Query()] = None,
+    bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax (map frame, metres)")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    cursor: Annotated[str | None, Query(description="`next_cursor` of the previous page")] = None,
+) -> TilePage:
+    """Tiles ordered by (i, j), optionally filtered by state and by a map-frame box."""
+    query = select(Tile).order_by(Tile.i, Tile.j).limit(limit + 1)
+    if state is not None:
+        query = query.where(Tile.state == state)
+    if bbox is not None:
+        i0, j0, i1, j1 = _parse_bbox(bbox, settings.tile_size)
+        query = query.where(Tile.i.between(i0, i1), Tile.j.between(j0, j1))
+    if cursor is not None:
+        ci, cj = _decode_cursor(cursor)
+        query = query.where(or_(Tile.i > ci, and_(Tile.i == ci, Tile.j > cj)))
+    tiles = list(db.scalars(query))
+    page, more = tiles[:limit], len(tiles) > limit
+    counts = _counts(db, [(t.i, t.j) for t in page])
+    items = [tile_public(request, t, counts.get((t.i, t.j), (0, 0))) for t in page]
+    next_cursor = _encode_cursor(page[-1].i, page[-1].j) if more and page else None
+    return TilePage(items=items, next_cursor=next_cursor)
+
+
+@router.get(
+    "/{i}/{j}",
+    operation_id="getTile",
+    response_model=TilePublic,
+    responses=problem_responses(401, 403, 404, 422),
+)
+def get_tile(i: int, j: int, request: Request, db: SessionDep, _principal: Reader) -> TilePublic:
+    """One tile's state, counts, version and links."""
+    tile = _get_tile(db, i, j)
+    return tile_public(request, tile, _counts(db, [(i, j)])[(i, j)])
+
+
+@router.post(
+    "/{i}/{j}/fuse",
+    operation_id="fuseTile",
+    status_code=202,
+    response_model=FuseAccepted,
+    responses=problem_responses(401, 403, 404, 422, 503),
+)
+def fuse_tile(i: int, j: int, db: SessionDep, _principal: Operator) -> FuseAccepted:
+    """Queue a (re-)fusion of the tile; an already queued or running job is returned instead."""
+    _get_tile(db, i, j)
+    job = request_fusion(db, i, j, trigger="operator")
+    db.commit()
+    return FuseAccepted(job_id=job.id, tile=[i, j])
+
+
+def _etag(mesh_sha256: str, fmt: str, min_confidence: float | None) -> str:
+    key = f"{mesh_sha256}:{fmt}:{'-' if min_confidence is None else repr(float(min_confidence))}"
+    return '"' + hashlib.sha256(key.encode()).hexdigest()[:32] + '"'
+
+
+def _matches(if_none_match: str | None, etag: str) -> bool:
+    if not if_none_match:
+        return False
+    candidates = [c.strip().removeprefix("W/") for c in if_none_match.split(",")]
+    return "*" in candidates or etag in candidates
+
+
+def _blob(blobs: BlobStore, sha256: str) -> bytes:
+    try:
+        return blobs.get(sha256)
+    except BlobNotFoundError as exc:
+        raise ProblemError(503, "the mesh blob is unavailable", code="blob_unavailable") from exc
+
+
+MESH_RESPONSES = {
+    200: {
+        "description": "The fused mesh (PLY binary little endian, or GLB), map frame",
+        "content": {
+            "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+            "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}},
+        },
+    },
+    304: {"description": "Not modified: `If-None-Match` matches the ETag"},
+    **problem_responses(401, 403, 404, 422, 503),
+}
+
+
+@router.get("/{i}/{j}/mesh", operation_id="getTileMesh", response_class=Response, responses=MESH_RESPONSES)
+def get_tile_mesh(
+    i: int,
+    j: int,
+    db: SessionDep,
+    blobs: BlobsDep,
+    _principal: Reader,
+    format: Annotated[Literal["ply", "glb"], Query()] = "ply",
+    version: Annotated[int | None, Query(ge=1, description="Default: the latest")] = None,
+    min_confidence: Annotated[float | None, Query(ge=0, le=1, description="Drop faces below")] = None,
+    if_none_match: Annotated[str | None, Header()] = None,
+) -> Response:
+    """The fused semantic mesh of the latest (or the given, immutable) version; 404 while never fused."""
+    tile = db.get(Tile, (i, j))
+    if tile is None or tile.version < 1:
+        raise ProblemError(404, f"tile ({i}, {j}) has not been fused yet", code="mesh_not_found")
+    wanted = version if version is not None else tile.version
+    row = db.scalar(
+        select(TileVersion).where(
+            TileVersion.tile_i == i, TileVersion.tile_j == j, TileVersion.version == wanted
+        )
+    )
+    if row is None:
+        raise ProblemError(404, f"tile ({i}, {j}) has no version {wanted}", code="version_not_found")
+    etag = _etag(row.mesh_sha256, format, min_confidence)
+    headers = {
+        "ETag": etag,
+        "Cache-Control": IMMUTABLE if version is not None else "no-cache",
+        "Content-Disposition": f'attachment; filename="tile_{i}_{j}_v{wanted}.{format}"',
+        "X-Tile-Version": str(wanted),
+    }
+    if _matches(if_none_match, etag):
+        return Response(status_code=304, headers=headers)
+    stored = row.mesh_sha256 if format == "ply" else row.glb_sha256
+    if min_confidence is None and stored is not None:
+        path = blobs.path(stored)
+        if path is not None and path.is_file():
+            return FileResponse(path, media_type=MEDIA_TYPES[format], headers=headers)
+        return Response(_blob(blobs, stored), media_type=MEDIA_TYPES[format], headers=headers)
+    fused = read_fused_ply(_blob(blobs, row.mesh_sha256))
+    if min_confidence is not None:
+        fused = filter_confidence(fused, min_confidence)
+    data = write_fused_ply(fused) if format == "ply" else write_glb(fused)
+    return Response(data, media_type=MEDIA_TYPES[format], headers=headers)
