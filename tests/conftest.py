@@ -141,7 +141,7 @@ def make_ply(
     face_labels = labels if labels is not None else [1 + (f % 3) for f in range(len(faces))]
     vertex = np.array(verts, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,)), ("label", "u1")])
-    face["vertex_indices"] = faces
+    face["vertex_indices"] = np.asarray(faces, dtype=np.int32).reshape(-1, 3)
     face["label"] = face_labels
     ply = plyfile.PlyData(
         [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(face, "face")],
