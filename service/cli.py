@@ -40,6 +40,22 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.app import create_app
 
     settings = get_settings()
+    if args.workers > 1:
+        # Each uvicorn worker process builds its own app (engine, pools) from the environment.
+        if settings.embedded:
+            raise CliError(
+                "--workers > 1 needs a broker (FLEETMAP_BROKER_URL): the embedded worker is per process"
+            )
+        uvicorn.run(
+            "service.app:create_app",
+            factory=True,
+            host=args.host,
+            port=args.port,
+            workers=args.workers,
+            log_config=None,
+            proxy_headers=True,
+        )
+        return 0
     app = create_app(settings)
     uvicorn.run(app, host=args.host, port=args.port, log_config=None, proxy_headers=True)
     return 0
@@ -134,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve = sub.add_parser("serve", help="run the HTTP API (embedded: with the fusion worker)")
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--workers", type=int, default=1, help="API processes (production: with a broker)")
     serve.set_defaults(func=cmd_serve)
 
     db = sub.add_parser("db", help="database maintenance")

@@ -32,15 +32,17 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cursor.close()
 
 
-def postgres_engine_options(settings: Settings | None = None) -> dict[str, Any]:
+def postgres_engine_options(settings: Settings | None = None, url_options: str = "") -> dict[str, Any]:
     """Production pool and connection options for PostgreSQL (psycopg 3).
 
     Pre-ping drops connections a server restart killed; connect/pool timeouts turn an outage into
     fast errors (503) instead of hung requests; TCP keepalives and ``tcp_user_timeout`` detect a
-    silently dead peer; ``statement_timeout`` bounds every statement server-side.
+    silently dead peer; ``statement_timeout`` bounds every statement server-side. ``url_options``
+    (the URL's own ``options=`` query, e.g. a search_path) is kept.
     """
     s = settings or Settings()
-    options = f"-c statement_timeout={s.db_statement_timeout_ms}" if s.db_statement_timeout_ms else ""
+    timeout = f"-c statement_timeout={s.db_statement_timeout_ms}" if s.db_statement_timeout_ms else ""
+    options = " ".join(part for part in (url_options, timeout) if part)
     connect_args: dict[str, Any] = {
         "connect_timeout": s.db_connect_timeout_s,
         "keepalives": 1,
@@ -68,7 +70,10 @@ def make_engine(url: str, settings: Settings | None = None) -> Engine:
     parsed = make_url(url)
     kwargs: dict[str, Any] = {"pool_pre_ping": True}
     if parsed.get_backend_name() == "postgresql":
-        kwargs = postgres_engine_options(settings)
+        url_options = parsed.query.get("options", "")
+        kwargs = postgres_engine_options(
+            settings, url_options if isinstance(url_options, str) else " ".join(url_options)
+        )
     if parsed.get_backend_name() == "sqlite":
         if parsed.database and parsed.database != ":memory:":
             Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
