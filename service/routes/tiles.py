@@ -12,11 +12,12 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import FileResponse
 from sqlalchemy import and_, distinct, func, or_, select, tuple_
+from sqlalchemy.orm import Session
 
 from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
 from service.blobs import BlobNotFoundError, BlobStore
 from service.deps import BlobsDep, Operator, Reader, SessionDep, SettingsDep
-from service.models import Submap, SubmapTile, Tile, TileVersion
+from service.models import JobTrigger, Submap, SubmapTile, Tile, TileVersion
 from service.problems import ProblemError, problem_responses
 from service.scheduler import request_fusion
 from service.schemas import FuseAccepted, TileLinks, TilePage, TilePublic
@@ -27,7 +28,7 @@ MEDIA_TYPES = {"ply": "application/octet-stream", "glb": "model/gltf-binary"}
 IMMUTABLE = "public, max-age=31536000, immutable"
 
 
-def _counts(db: SessionDep, keys: list[tuple[int, int]]) -> dict[tuple[int, int], tuple[int, int]]:
+def _counts(db: Session, keys: list[tuple[int, int]]) -> dict[tuple[int, int], tuple[int, int]]:
     """(submaps, distinct sessions) per tile."""
     if not keys:
         return {}
@@ -84,7 +85,7 @@ def _parse_bbox(bbox: str, size: float) -> tuple[int, int, int, int]:
     return math.floor(xmin / size), math.floor(ymin / size), math.floor(xmax / size), math.floor(ymax / size)
 
 
-def _get_tile(db: SessionDep, i: int, j: int) -> Tile:
+def _get_tile(db: Session, i: int, j: int) -> Tile:
     tile = db.get(Tile, (i, j))
     if tile is None or not _counts(db, [(i, j)]):
         raise ProblemError(404, f"tile ({i}, {j}) holds no submap", code="tile_not_found")
@@ -139,11 +140,13 @@ def get_tile(i: int, j: int, request: Request, db: SessionDep, _principal: Reade
     response_model=FuseAccepted,
     responses=problem_responses(401, 403, 404, 422, 503),
 )
-def fuse_tile(i: int, j: int, db: SessionDep, _principal: Operator) -> FuseAccepted:
+def fuse_tile(i: int, j: int, db: SessionDep, settings: SettingsDep, _principal: Operator) -> FuseAccepted:
     """Queue a (re-)fusion of the tile; an already queued or running job is returned instead."""
     _get_tile(db, i, j)
-    job = request_fusion(db, i, j, trigger="operator")
-    db.commit()
+    try:
+        job = request_fusion(db, i, j, trigger=JobTrigger.operator.value, settings=settings)
+    except LookupError as exc:
+        raise ProblemError(404, f"tile ({i}, {j}) holds no submap", code="tile_not_found") from exc
     return FuseAccepted(job_id=job.id, tile=[i, j])
 
 
