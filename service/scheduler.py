@@ -344,13 +344,13 @@ def start_background(
     """Start the scheduler thread (and the embedded worker when there is no broker).
 
     Settings and the session factory come from the arguments, else from ``app.state.settings`` /
-    ``app.state.sessionmaker``, else from the environment. :func:`stop_background` (called by the
+    ``app.state.session_factory``, else from the environment. :func:`stop_background` (called by the
     app's lifespan on shutdown) stops it.
     """
     state = getattr(app, "state", None)
     settings = settings or getattr(state, "settings", None) or get_settings()
     if session_factory is None:
-        session_factory = getattr(state, "sessionmaker", None)
+        session_factory = getattr(state, "session_factory", None) or getattr(state, "sessionmaker", None)
     if session_factory is None:
         from service.db import engine_from_settings, make_sessionmaker
 

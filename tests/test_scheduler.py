@@ -1,0 +1,266 @@
+"""Scheduler behaviour: debounce / max wait, one fusion per burst, re-dirtying, lease, sweeper.
+
+Uploads go through the real app (httpx TestClient, SQLite); the scheduler is ticked with an injected
+``now``; jobs run in-process with a fake fusion (tests/worker_support.py) so no torch training runs.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from datetime import timedelta
+from typing import Any
+
+import pytest
+from sqlalchemy import select, update
+
+from fusion.errors import FusionError
+from service import scheduler
+from service.models import FusionJob, JobState, Tile, TileVersion, utcnow
+from tests.worker_support import FakeFusion, api, make_settings, session_factory, upload
+from worker import jobs
+from worker.jobs import claim_job, run_fusion_job
+
+
+@pytest.fixture
+def fake(monkeypatch: pytest.MonkeyPatch) -> FakeFusion:
+    fusion = FakeFusion(shift=0.0)
+    monkeypatch.setattr(jobs, "_fuse", fusion)
+    return fusion
+
+
+@pytest.fixture
+def env(tmp_path: Any) -> Any:
+    settings = make_settings(tmp_path)
+    with api(settings) as client:
+        client.settings = settings  # type: ignore[attr-defined]
+        client.db = session_factory(client.app)  # type: ignore[attr-defined]
+        yield client
+
+
+def tile_row(client: Any, i: int = 0, j: int = 0) -> Tile:
+    with client.db() as db:
+        tile = db.get(Tile, (i, j))
+        assert tile is not None
+        return tile
+
+
+def run(client: Any, job_id: str) -> str:
+    return run_fusion_job(
+        job_id, client.settings, session_factory=client.db, blob_store=client.app.state.blobs
+    )
+
+
+def tick(client: Any, after_s: float) -> scheduler.TickReport:
+    """Tick at ``after_s`` seconds after tile (0, 0)'s last upload."""
+    now = tile_row(client).last_upload_at + timedelta(seconds=after_s)
+    with client.db() as db:
+        return scheduler.tick(db, now, client.settings)
+
+
+def current_job(client: Any, i: int = 0, j: int = 0) -> str:
+    """The id of the tile's latest job."""
+    job_id = tile_row(client, i, j).job_id
+    assert job_id is not None
+    return job_id
+
+
+def jobs_of(client: Any, i: int = 0, j: int = 0) -> list[FusionJob]:
+    with client.db() as db:
+        query = select(FusionJob).where(FusionJob.tile_i == i, FusionJob.tile_j == j)
+        return list(db.execute(query.order_by(FusionJob.created_at)).scalars())
+
+
+def test_debounce_then_one_fusion_per_burst(env: Any, fake: FakeFusion) -> None:
+    for seq in range(5):
+        upload(env, "veh-1/a", seq, [10.0 + seq, 10.0, 0.0])
+    assert env.get("/v1/tiles/0/0").json()["state"] == "dirty"
+    assert tick(env, 10).scheduled == []  # not quiet for 30 s yet
+    assert tick(env, 31).scheduled == [(0, 0)]
+    assert tick(env, 32).scheduled == []  # already queued: no second job
+    (job,) = jobs_of(env)
+    assert env.get("/v1/tiles/0/0").json()["state"] == "queued"
+    assert run(env, job.id) == "succeeded"
+    assert len(fake.calls) == 1 and len(fake.calls[0][1]) == 5
+    body = env.get("/v1/tiles/0/0").json()
+    assert (body["state"], body["version"], body["progress"]) == ("fused", 1, 1.0)
+    assert tick(env, 1000).scheduled == []
+    assert env.get(f"/v1/jobs/{job.id}").json()["state"] == "succeeded"
+
+
+def test_max_wait_schedules_a_tile_that_never_goes_quiet(env: Any) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    dirty_since = tile_row(env).dirty_since
+    assert dirty_since is not None
+    for after_s in (100.0, 599.0):  # uploads keep coming every few seconds
+        now = dirty_since + timedelta(seconds=after_s)
+        with env.db() as db:
+            db.execute(update(Tile).values(last_upload_at=now - timedelta(seconds=2)))
+            db.commit()
+            assert scheduler.tick(db, now, env.settings).scheduled == []
+    now = dirty_since + timedelta(seconds=601)
+    with env.db() as db:
+        db.execute(update(Tile).values(last_upload_at=now - timedelta(seconds=2)))
+        db.commit()
+        assert scheduler.tick(db, now, env.settings).scheduled == [(0, 0)]
+
+
+def test_uploads_during_fusion_make_the_tile_dirty_again(env: Any, fake: FakeFusion) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    tick(env, 31)
+    fake.during = lambda: upload(env, "veh-1/a", 1, [12.0, 10.0, 0.0])
+    assert run(env, current_job(env)) == "succeeded"
+    body = env.get("/v1/tiles/0/0").json()
+    assert (body["state"], body["version"], body["submaps"]) == ("dirty", 1, 2)
+    fake.during = None
+    assert tick(env, 31).scheduled == [(0, 0)]
+    assert run(env, current_job(env)) == "succeeded"
+    body = env.get("/v1/tiles/0/0").json()
+    assert (body["state"], body["version"]) == ("fused", 2)
+    assert len(fake.calls[-1][1]) == 2
+
+
+def test_one_fusion_per_tile_and_one_active_job(env: Any, fake: FakeFusion) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    first = env.post("/v1/tiles/0/0/fuse")
+    second = env.post("/v1/tiles/0/0/fuse")
+    assert first.status_code == second.status_code == 202
+    assert first.json()["job_id"] == second.json()["job_id"]
+    job_id = first.json()["job_id"]
+    with env.db() as db:
+        assert claim_job(db, job_id, "other-worker", env.settings) is not None
+    assert env.get("/v1/tiles/0/0").json()["state"] == "fusing"
+    assert run(env, job_id) == "skipped"  # the lease is held elsewhere
+    assert fake.calls == []
+    with env.db() as db:
+        assert claim_job(db, job_id, "third-worker", env.settings) is None
+    assert env.post("/v1/tiles/0/0/fuse").json()["job_id"] == job_id  # still the running job
+
+
+def test_failed_fusion_keeps_serving_the_previous_version(env: Any, fake: FakeFusion) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    tick(env, 31)
+    assert run(env, current_job(env)) == "succeeded"
+    etag = env.get("/v1/tiles/0/0/mesh").headers["etag"]
+    upload(env, "veh-1/a", 1, [12.0, 10.0, 0.0])
+    tick(env, 31)
+    fake.error = FusionError("the optimisation diverged")
+    failed_id = current_job(env)
+    assert run(env, failed_id) == "failed"
+    body = env.get("/v1/tiles/0/0").json()
+    assert (body["state"], body["version"]) == ("failed", 1)
+    assert "diverged" in body["last_error"]
+    job = env.get(f"/v1/jobs/{failed_id}").json()
+    assert job["state"] == "failed" and "diverged" in job["error"]
+    mesh = env.get("/v1/tiles/0/0/mesh")
+    assert mesh.status_code == 200 and mesh.headers["etag"] == etag
+    assert tick(env, 1000).scheduled == []  # no new upload: no automatic retry loop
+    fake.error = None
+    upload(env, "veh-1/a", 2, [14.0, 10.0, 0.0])
+    assert tick(env, 31).scheduled == [(0, 0)]
+    assert run(env, current_job(env)) == "succeeded"
+    body = env.get("/v1/tiles/0/0").json()
+    assert (body["state"], body["version"], body["last_error"]) == ("fused", 2, None)
+
+
+def test_refined_poses_are_served_and_moves_dirty_other_tiles(env: Any, fake: FakeFusion) -> None:
+    # x ∈ [48, 68] with the GPS margin: touches tiles (0, 0) and (1, 0); home tile (0, 0).
+    created = upload(env, "veh-1/a", 0, [50.0, 10.0, 0.0])
+    assert sorted(map(tuple, created["tiles"])) == [(0, 0), (1, 0)]
+    upload(env, "veh-1/a", 1, [10.0, 10.0, 0.0])
+    report = tick(env, 31)
+    assert sorted(report.scheduled) == [(0, 0), (1, 0)]
+    assert (
+        run(env, current_job(env, 1, 0)) == "succeeded"
+    )  # (1, 0) holds the submap fixed: no refined pose yet
+    assert env.get(f"/v1/submaps/{created['id']}").json()["pose_refined"] is None
+    fake.shift = 0.3
+    assert run(env, current_job(env)) == "succeeded"
+    refined = env.get(f"/v1/submaps/{created['id']}").json()["pose_refined"]
+    assert refined["t"] == pytest.approx([50.3, 10.0, 0.0])
+    poses = env.get("/v1/sessions/veh-1%2Fa/poses").json()
+    assert [p["seq"] for p in poses] == [0, 1]
+    assert poses[0]["pose_refined"]["t"] == pytest.approx([50.3, 10.0, 0.0])
+    # The submap moved 0.3 m: tile (1, 0), which holds it fixed, must be fused again.
+    assert env.get("/v1/tiles/1/0").json()["state"] == "dirty"
+    assert tick(env, 31).scheduled == [(1, 0)]
+    fake.shift = 0.0
+    assert run(env, current_job(env, 1, 0)) == "succeeded"
+    held = fake.calls[-1][1]
+    assert [s.pose_init.t[0] for s in held] == pytest.approx([50.3])  # held at its refined pose
+
+
+def test_rerunning_a_job_is_idempotent(env: Any, fake: FakeFusion) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    tick(env, 31)
+    job_id = current_job(env)
+    assert run(env, job_id) == "succeeded"
+    assert run(env, job_id) == "skipped"  # a duplicate delivery of a finished job
+    again = env.post("/v1/tiles/0/0/fuse").json()["job_id"]
+    assert run(env, again) == "reused"  # same inputs and config as version 1
+    with env.db() as db:
+        versions = db.execute(select(TileVersion.version)).scalars().all()
+    assert versions == [1]
+    assert env.get(f"/v1/jobs/{again}").json()["metrics"]["reused_version"] == 1
+    assert env.get("/v1/tiles/0/0").json()["state"] == "fused"
+    assert len(fake.calls) == 1
+
+
+def test_sweeper_reclaims_expired_leases_then_gives_up(env: Any, fake: FakeFusion) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    tick(env, 31)
+    job_id = current_job(env)
+    for attempt in range(1, scheduler.MAX_ATTEMPTS + 1):
+        with env.db() as db:
+            claim = claim_job(db, job_id, f"dead-worker-{attempt}", env.settings)
+            assert claim is not None  # the worker "dies" holding the lease
+        expired = utcnow() + timedelta(seconds=env.settings.lease_s + 1)
+        with env.db() as db:
+            report = scheduler.tick(db, expired, env.settings)
+        assert report.reclaimed_tiles == [(0, 0)]
+        state = env.get("/v1/tiles/0/0").json()["state"]
+        assert state == ("queued" if attempt < scheduler.MAX_ATTEMPTS else "failed")
+    job = env.get(f"/v1/jobs/{job_id}").json()
+    assert job["state"] == "failed" and "worker lost" in job["error"]
+    assert fake.calls == []
+
+
+def test_sweeper_resends_jobs_whose_broker_message_was_lost(tmp_path: Any, monkeypatch: Any) -> None:
+    settings = make_settings(tmp_path, broker_url="redis://127.0.0.1:1/0")
+    sent: list[str] = []
+    monkeypatch.setattr(scheduler, "enqueue", lambda job_id, _settings=None: sent.append(job_id) or True)
+    with api(settings) as client:
+        upload(client, "veh-1/a", 0, [10.0, 10.0, 0.0])
+        factory = session_factory(client.app)
+        with factory() as db:
+            last = db.get(Tile, (0, 0)).last_upload_at
+            assert scheduler.tick(db, last + timedelta(seconds=31), settings).scheduled == [(0, 0)]
+        assert len(sent) == 1
+        with factory() as db:
+            later = last + timedelta(seconds=31 + scheduler.DEFAULT_REQUEUE_S / 2)
+            assert scheduler.tick(db, later, settings).requeued_jobs == []
+            later = last + timedelta(seconds=32 + scheduler.DEFAULT_REQUEUE_S)
+            assert scheduler.tick(db, later, settings).requeued_jobs == sent[:1]
+        assert sent == [sent[0], sent[0]]
+        with factory() as db:
+            assert db.get(FusionJob, sent[0]).state == JobState.queued.value
+
+
+def test_the_api_process_does_not_import_torch(tmp_path: Any) -> None:
+    code = f"""
+import sys
+from fastapi.testclient import TestClient
+from service.app import create_app
+from service import scheduler
+from tests.worker_support import make_settings, session_factory
+from pathlib import Path
+settings = make_settings(Path({str(tmp_path)!r}), broker_url="memory://")
+with TestClient(create_app(settings, migrate=True, background=False)) as client:
+    assert client.get("/healthz").status_code == 200
+    with session_factory(client.app)() as db:
+        scheduler.tick(db, None, settings)
+    scheduler.enqueue("some-job", settings)
+assert "torch" not in sys.modules, "the API process imported torch"
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]

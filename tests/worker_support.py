@@ -1,0 +1,138 @@
+"""Helpers for the scheduler and worker tests: settings, an in-process app, uploads, a fake fusion.
+
+Meshes are tiny (tests/scene.py's 16 m street); poses are map-frame ``{"t", "q"}``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from fastapi.testclient import TestClient
+
+from fusion.meshio import write_submap_ply
+from fusion.types import FusedMesh, FusionResult, Pose, SubmapInput, TileSpec
+from service.app import create_app
+from service.settings import Settings
+from tests.scene import street
+
+IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
+
+
+def make_settings(tmp_path: Path, **overrides: Any) -> Settings:
+    """Embedded settings under ``tmp_path``: auth off, tiny fusion, the scheduler driven by the test."""
+    values: dict[str, Any] = {
+        "data_dir": tmp_path / "data",
+        "auth": "off",
+        "fuse_debounce_s": 30.0,
+        "fuse_max_wait_s": 600.0,
+        "fusion_preset": "tiny",
+        "scheduler_interval_s": 3600.0,
+        "lease_s": 60.0,
+    }
+    values.update(overrides)
+    return Settings(**values)
+
+
+@contextmanager
+def api(settings: Settings, background: bool = False) -> Iterator[TestClient]:
+    """The real app (migrated SQLite), through httpx; the scheduler/worker only when ``background``."""
+    app = create_app(settings, migrate=True, background=background)
+    with TestClient(app) as client:
+        yield client
+
+
+def session_factory(app: Any) -> Any:
+    """The app's sessionmaker (``app.state.session_factory``)."""
+    state = app.state
+    return getattr(state, "session_factory", None) or state.sessionmaker
+
+
+_MESH: bytes | None = None
+
+
+def mesh_bytes() -> bytes:
+    global _MESH
+    if _MESH is None:
+        _MESH = write_submap_ply(street(16.0))
+    return _MESH
+
+
+def upload(
+    client: Any, session: str, seq: int, t: list[float], *, agent: str = "veh-1", mesh: bytes | None = None
+) -> dict[str, Any]:
+    """POST one submap of ``session`` at map-frame translation ``t`` (identity rotation); returns the body."""
+    meta = {
+        "agent_id": agent,
+        "session_id": session,
+        "seq": seq,
+        "captured_at": "2026-11-24T08:00:00Z",
+        "gps": {"pose": {"t": t, "q": IDENTITY_Q}},
+        "gps_sigma": {"trans_m": 2.0, "rot_deg": 2.0},
+        "odometry": {"t": [float(seq), 0.0, 0.0], "q": IDENTITY_Q},
+    }
+    files = {
+        "meta": (None, json.dumps(meta), "application/json"),
+        "mesh": ("submap.ply", mesh or mesh_bytes(), "application/octet-stream"),
+    }
+    response = client.post("/v1/submaps", files=files)
+    assert response.status_code in (200, 201), response.text
+    return response.json()
+
+
+def fake_mesh(tile: TileSpec) -> FusedMesh:
+    """Two labelled triangles in the tile (map frame)."""
+    x0, y0 = tile.xy_min
+    vertices = np.array([[x0 + 1, y0 + 1, 0], [x0 + 5, y0 + 1, 0], [x0 + 1, y0 + 5, 0], [x0 + 5, y0 + 5, 0]])
+    return FusedMesh(
+        vertices.astype(np.float32),
+        np.array([[0, 1, 2], [1, 3, 2]], np.int32),
+        np.ones(4, np.uint8),
+        np.full(4, 0.9, np.float32),
+        np.ones(2, np.uint8),
+    )
+
+
+class FakeFusion:
+    """Stands in for ``fusion.optimize.fuse_tile``: free poses move by ``shift`` metres along x.
+
+    ``during`` runs inside the "fusion" (e.g. an upload that arrives meanwhile); ``error`` is raised.
+    """
+
+    def __init__(self, shift: float = 0.0, error: Exception | None = None) -> None:
+        self.shift = shift
+        self.error = error
+        self.calls: list[tuple[TileSpec, list[SubmapInput]]] = []
+        self.during: Callable[[], None] | None = None
+
+    def __call__(self, inputs: Any, keeper: Any) -> FusionResult:
+        self.calls.append((inputs.tile, inputs.submaps))
+        if self.during is not None:
+            self.during()
+        if self.error is not None:
+            raise self.error
+        poses = {
+            s.id: Pose(np.asarray(s.pose_init.t) + [self.shift, 0.0, 0.0], s.pose_init.q)
+            for s in inputs.submaps
+            if s.free
+        }
+        return FusionResult(
+            fake_mesh(inputs.tile), poses, {"losses": {"total": 0.1}}, inputs.config.to_dict()
+        )
+
+
+def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, interval_s: float = 0.2) -> Any:
+    """Poll ``predicate`` until truthy (returns its value) or fail after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    last: Any = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval_s)
+    raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}; last value {last!r}")
