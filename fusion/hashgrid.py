@@ -140,7 +140,11 @@ class HashGrid(FeatureGrid):
 
 
 def make_grid(grid_type: str, aspect: tuple[float, float, float], **kwargs: int) -> FeatureGrid:
-    """Feature grid by name. "dense" and "octree" are reserved for alternative implementations."""
+    """Feature grid by name: "hash" here, "dense" / "octree" in ``fusion.densegrid``."""
     if grid_type == "hash":
         return HashGrid(aspect=aspect, **kwargs)
+    if grid_type in ("dense", "octree"):
+        from fusion.densegrid import make_dense_grid
+
+        return make_dense_grid(grid_type, aspect, **kwargs)
     raise NotImplementedError(f"grid_type {grid_type!r} is not implemented yet (available: 'hash')")

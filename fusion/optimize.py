@@ -167,6 +167,9 @@ def fuse_tile(
     gen = torch.Generator().manual_seed(config.seed)
     problem = build_problem(submaps, tile, config, dev)
     field = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
+    allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
+    if callable(allocate):
+        allocate(field.norm(_posed_pool(problem)))
     pairs, odom_rel, odom_ist, odom_isr = (t.to(dev) for t in odometry_pairs(problem.submaps))
     gps_ist = torch.tensor([1 / max(sm.gps_sigma.trans_m, 1e-3) for sm in problem.submaps], dtype=torch.float64, device=dev)
     gps_isr = torch.tensor([1 / np.radians(max(sm.gps_sigma.rot_deg, 1e-3)) for sm in problem.submaps],
@@ -244,6 +247,13 @@ def fuse_tile(
         "extract": ex_stats,
     }
     return FusionResult(mesh, poses, metrics, config.to_dict(), border)
+
+
+def _posed_pool(problem: TileProblem) -> torch.Tensor:
+    """Surface pool ``(P, 3)`` at the current poses, tile frame (metres)."""
+    with torch.no_grad():
+        pose = problem.poses()[problem.pool.submap].float()  # (P, 4, 4)
+        return (pose[:, :3, :3] @ problem.pool.points[:, :, None])[:, :, 0] + pose[:, :3, 3]
 
 
 def _sdf_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torch.device):  # noqa: ANN202
