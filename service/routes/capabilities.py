@@ -23,5 +23,5 @@ def get_capabilities(request: Request, settings: SettingsDep, _principal: AnyRol
         max_coordinate_m=settings.max_coordinate_m,
         tile_size_m=settings.tile_size,
         origin=Origin(lat=lat, lon=lon, alt=alt),
-        labels_url=str(request.url_for("listLabels")),
+        labels_url=str(request.url_for("list_labels")),
     )
