@@ -57,7 +57,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         )
         return 0
     app = create_app(settings)
-    uvicorn.run(app, host=args.host, port=args.port, log_config=None, proxy_headers=True)
+    uvicorn.run(app, host=args.host, port=args.port, log_config=None, access_log=False, proxy_headers=True)
     return 0
 
 

@@ -7,7 +7,7 @@ import binascii
 import hashlib
 import json
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import FileResponse
@@ -169,7 +169,7 @@ def _blob(blobs: BlobStore, sha256: str) -> bytes:
         raise ProblemError(503, "the mesh blob is unavailable", code="blob_unavailable") from exc
 
 
-MESH_RESPONSES = {
+MESH_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {
         "description": "The fused mesh (PLY binary little endian, or GLB), map frame",
         "content": {
