@@ -181,8 +181,9 @@ def extract_mesh(
     stats: dict[str, Any] = {"lattice_shape": list(lat.shape), "band_points": int(mask.sum()), "pinned": pinned}
     if not ((vol > 0).any() and (vol < 0).any()):
         return FusedMesh.empty(), border, stats
-    # "ascent" orients faces (right-hand winding) towards s > 0, i.e. outward into free space
-    verts_idx, faces, _, _ = marching_cubes(vol, level=0.0, gradient_direction="ascent")
+    # skimage's "descent" winding makes right-hand face normals point to s > 0 (free space); pinned by
+    # the sphere test in tests/test_extract.py
+    verts_idx, faces, _, _ = marching_cubes(vol, level=0.0, gradient_direction="descent", allow_degenerate=False)
     verts = (verts_idx.astype(np.float64) + np.asarray(lat.k0, np.float64)) * voxel_m
     stats["raw_faces"] = int(len(faces))
     if len(faces) == 0:

@@ -85,7 +85,7 @@ class HashGrid(FeatureGrid):
         self.table_size = 2**log2_table_size
         self.custom_gather = custom_gather
         growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(num_levels - 1, 1))
-        res = [int(math.floor(base_resolution * growth**lv)) for lv in range(num_levels)]
+        res = [int(math.floor(base_resolution * growth**lv + 1e-6)) for lv in range(num_levels)]
         # per level, per axis: number of cells; the lattice has cells + 1 vertices per axis
         cells = torch.tensor([[max(1, math.ceil(r * a)) for a in aspect] for r in res], dtype=torch.float32)
         verts = cells.long() + 1
@@ -97,9 +97,12 @@ class HashGrid(FeatureGrid):
         self.register_buffer("dense", dense, persistent=False)  # (L,)
         self.register_buffer("sizes", sizes, persistent=False)  # (L,)
         self.register_buffer("offsets", offsets[:-1].clone(), persistent=False)  # (L,)
-        self.register_buffer("level_mask", torch.ones(num_levels), persistent=False)  # (L,)
-        self.register_buffer("corners", torch.tensor(
-            [[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.long), persistent=False)
+        if bool(dense.any()) and not bool(dense[: int(dense.sum())].all()):
+            raise ValueError("dense levels must be the coarsest ones")
+        self.num_dense = int(dense.sum())
+        corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.long)
+        corner_offsets = corners[:, 0] + verts[:, None, 0] * (corners[:, 1] + verts[:, None, 1] * corners[:, 2])
+        self.register_buffer("dense_corner_offsets", corner_offsets, persistent=False)  # (L, 8)
         self.resolutions = res
         self.active_levels = num_levels
         self.table = nn.Parameter(
@@ -108,8 +111,6 @@ class HashGrid(FeatureGrid):
 
     def set_active_levels(self, k: int) -> None:
         self.active_levels = max(1, min(int(k), self.num_levels))
-        self.level_mask.zero_()
-        self.level_mask[: self.active_levels] = 1.0
 
     def finest_active_cell(self) -> float:
         return 1.0 / self.resolutions[self.active_levels - 1]
@@ -122,16 +123,27 @@ class HashGrid(FeatureGrid):
         pos = x01.clamp(0.0, 1.0)[:, None, :] * cells  # (n, l, 3) in cell units
         base = pos.detach().floor().clamp_max(cells - 1)  # (n, l, 3), keeps x = 1 in the last cell
         frac = pos - base  # (n, l, 3), differentiable in x
-        ib = base.long()[:, :, None, :] + self.corners  # (n, l, 8, 3)
-        verts = self.verts[:levels]
-        dense_idx = ib[..., 0] + verts[:, None, 0] * (ib[..., 1] + verts[:, None, 1] * ib[..., 2])
-        hashed = (ib[..., 0] * PRIMES[0]) ^ (ib[..., 1] * PRIMES[1]) ^ (ib[..., 2] * PRIMES[2])
-        hashed = hashed & (self.table_size - 1)
-        idx = torch.where(self.dense[:levels, None], dense_idx, hashed) + self.offsets[:levels, None]
+        ib = base.long()
+        nd = min(self.num_dense, levels)
+        parts = []
+        if nd > 0:  # dense levels: flat index of the base vertex + per-level corner offsets
+            v = self.verts[:nd]
+            flat = ib[:, :nd, 0] + v[:, 0] * (ib[:, :nd, 1] + v[:, 1] * ib[:, :nd, 2])  # (n, nd)
+            parts.append(flat[:, :, None] + self.dense_corner_offsets[:nd])  # (n, nd, 8)
+        if levels > nd:  # hashed levels: xor of per-axis prime products, corners by broadcasting
+            ih = ib[:, nd:levels]
+            hx = torch.stack([ih[..., 0], ih[..., 0] + 1], -1) * PRIMES[0]  # (n, lh, 2)
+            hy = torch.stack([ih[..., 1], ih[..., 1] + 1], -1) * PRIMES[1]
+            hz = torch.stack([ih[..., 2], ih[..., 2] + 1], -1) * PRIMES[2]
+            h = hx[..., :, None, None] ^ hy[..., None, :, None] ^ hz[..., None, None, :]
+            parts.append(h.reshape(n, levels - nd, 8) & (self.table_size - 1))
+        idx = (parts[0] if len(parts) == 1 else torch.cat(parts, 1)) + self.offsets[:levels, None]
         feats = gather_rows(self.table, idx.reshape(-1), self.custom_gather)
         feats = feats.view(n, levels, 8, self.features_per_level)
-        c = self.corners.to(frac.dtype)  # (8, 3)
-        w = (frac[:, :, None, :] * c + (1 - frac[:, :, None, :]) * (1 - c)).prod(-1)  # (n, l, 8)
+        wx = torch.stack([1 - frac[..., 0], frac[..., 0]], -1)  # (n, l, 2)
+        wy = torch.stack([1 - frac[..., 1], frac[..., 1]], -1)
+        wz = torch.stack([1 - frac[..., 2], frac[..., 2]], -1)
+        w = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).reshape(n, levels, 8)
         out = (feats * w[..., None]).sum(2)  # (n, l, F)
         if levels < self.num_levels:
             pad = out.new_zeros(n, self.num_levels - levels, self.features_per_level)

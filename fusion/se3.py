@@ -60,11 +60,11 @@ def so3_log(r: Tensor) -> Tensor:
     s = ss.clamp_min(1e-30).sqrt()
     c = ((r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2]) - 1) / 2
     theta = torch.atan2(s, c)
-    small = s < SMALL_ANGLE
+    small = (s < SMALL_ANGLE) & (c > 0)
     factor = torch.where(small, 1 + ss / 6 + 7 * ss**2 / 360, theta / torch.where(small, torch.ones_like(s), s))
     phi = factor[..., None] * sv
     # Near π, sin θ vanishes: recover the axis from the symmetric part (R + Rᵀ)/2 = cos θ I + (1 − cos θ) aaᵀ.
-    near_pi = (c < -0.99) & ~small
+    near_pi = c < -0.99
     if bool(near_pi.any()):
         sym = 0.5 * (r + r.transpose(-1, -2))
         eye = torch.eye(3, dtype=r.dtype, device=r.device)

@@ -1,0 +1,76 @@
+"""Joint field + pose optimisation on a tiny two-session street."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion.config import FusionConfig
+from fusion.errors import FusionError
+from fusion.optimize import fuse_tile
+from fusion.types import Pose, ProgressEvent, TileSpec
+from tests.scene import tiny_config, two_sessions
+
+TILE = TileSpec(0, 0, 16.0)
+
+
+def _relative_offset(poses: dict[str, Pose]) -> float:
+    rel = poses["a"].inverse().compose(poses["b"])
+    return float(np.linalg.norm(rel.t))
+
+
+def test_recovers_offset_between_two_sessions() -> None:
+    subs, _ = two_sessions(offset=(0.5, -0.4, 0.1), yaw_deg=1.0)
+    before = _relative_offset({s.id: s.pose_init for s in subs})
+    events: list[ProgressEvent] = []
+    res = fuse_tile(subs, TILE, tiny_config(), progress=events.append)
+    after = _relative_offset(res.poses)
+    assert after < 0.35 * before, (before, after)
+    assert {e.stage for e in events} == {"train", "extract"}
+    assert events[-1].stage == "extract" and any(e.iteration == e.total for e in events if e.stage == "train")
+    assert len(res.mesh.faces) > 1000
+    v = res.mesh.vertices
+    assert v[:, 0].min() >= -1e-4 and v[:, 0].max() <= 16 + 1e-4 and v[:, 1].min() >= -1e-4
+    assert np.all(res.mesh.vertex_confidence >= 0.7)
+    # the ground is the dominant class of the fused mesh
+    assert np.bincount(res.mesh.vertex_labels).argmax() == 1
+    m = res.metrics
+    assert m["num_submaps"] == 2 and m["points_per_s"] > 0 and m["device"] == "cpu"
+    assert set(m["losses"]) >= {"sdf", "norm", "sem", "eik", "conf", "odom", "gps"}
+    assert FusionConfig.from_dict(res.config) == tiny_config()
+    assert set(res.border) == {"x0", "x1", "y0", "y1"}
+
+
+def test_fixed_submaps_hold_and_are_not_returned() -> None:
+    subs, _ = two_sessions()
+    subs[0].free = False
+    res = fuse_tile(subs, TILE, tiny_config(iterations=10))
+    assert set(res.poses) == {"b"}
+
+
+def test_deterministic_under_seed() -> None:
+    subs, _ = two_sessions()
+    cfg = tiny_config(iterations=12)
+    r1 = fuse_tile(subs, TILE, cfg)
+    r2 = fuse_tile(subs, TILE, cfg)
+    assert np.array_equal(r1.poses["b"].t, r2.poses["b"].t)
+    assert np.array_equal(r1.mesh.vertices, r2.mesh.vertices)
+    r3 = fuse_tile(subs, TILE, cfg.with_(seed=1))
+    assert not np.array_equal(r1.poses["b"].t, r3.poses["b"].t)
+
+
+def test_empty_tile_raises() -> None:
+    subs, _ = two_sessions()
+    with pytest.raises(FusionError, match="no submap overlaps tile"):
+        fuse_tile(subs, TileSpec(10, 10, 16.0), tiny_config())
+
+
+def test_config_round_trip_and_presets() -> None:
+    for name in ("cpu", "paper"):
+        cfg = FusionConfig.preset(name)
+        assert FusionConfig.from_dict(cfg.to_dict()) == cfg
+    paper = FusionConfig.preset("paper")
+    assert (paper.num_levels, paper.log2_table_size, paper.base_resolution, paper.max_resolution) == (16, 16, 16, 2048)
+    assert paper.iterations == 500 and paper.surface_samples == 125_000
+    with pytest.raises(ValueError):
+        FusionConfig.from_dict({"nope": 1})
