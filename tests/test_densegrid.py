@@ -102,3 +102,17 @@ def test_factory_and_octree_config() -> None:
 def test_dense_grid_refuses_huge_levels() -> None:
     with pytest.raises(ValueError, match="octree"):
         DenseGrid(num_levels=1, base_resolution=1024, max_resolution=1024, max_level_vertices=2**20)
+
+
+@pytest.mark.parametrize("grid_type", ["dense", "octree"])
+def test_field_builds_dense_grids_from_the_config(grid_type: str) -> None:
+    from fusion.field import SemanticSDFField
+
+    cfg = octree_config(FusionConfig(), box_m=16.0, leaf_m=1.0).with_(grid_type=grid_type)
+    field = SemanticSDFField(cfg, torch.zeros(3), torch.tensor([16.0, 16.0, 4.0]))
+    assert isinstance(field.grid, DenseGrid) and field.grid.out_dim == 16
+    x = (torch.rand(7, 3) * torch.tensor([16.0, 16.0, 4.0])).requires_grad_(True)
+    s, c_logit, logits = field(x)
+    assert s.shape == (7,) and logits is not None and logits.shape[0] == 7
+    s.sum().backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all()
