@@ -28,17 +28,19 @@ from service.settings import Settings
 NEIGHBOURS = {"x0": ((-1, 0), "x1"), "x1": ((1, 0), "x0"), "y0": ((0, -1), "y1"), "y1": ((0, 1), "y0")}
 # A tiny schedule for tests and smoke runs: a few iterations and a coarse lattice (seconds on 2 cores).
 TINY = {
-    "iterations": 30,
+    "iterations": 25,
     "pose_warmup": 5,
-    "surface_samples": 1024,
-    "space_samples": 1024,
+    "surface_samples": 512,
+    "space_samples": 512,
     "num_levels": 6,
     "lod_start_levels": 4,
+    "log2_table_size": 14,
     "max_resolution": 64,
     "geo_hidden": 32,
     "sem_hidden": 32,
     "pool_points": 20_000,
     "consensus": False,
+    "c_th": 0.5,  # a few iterations leave confidences lower than a full schedule does
     "extract_voxel_m": 1.0,
     "tile_margin_m": 2.0,
 }
