@@ -1,0 +1,142 @@
+"""Production path: the API enqueues by task name on Redis, a real ``fleetmap worker`` (Celery, prefork)
+fuses with the tiny config, both share PostgreSQL and a blob folder. Also: a lost broker message is
+re-sent by the scheduler's sweeper.
+
+Needs the local Redis (``FLEETMAP_TEST_REDIS_URL``) and PostgreSQL (``FLEETMAP_TEST_DATABASE_URL``); skipped
+only when Redis is unreachable (CI starts both). Each run uses its own queue and database.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import uuid
+from collections.abc import Iterator
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from service import scheduler
+from service.models import FusionJob
+from tests.worker_support import api, make_settings, session_factory, upload, wait_for
+
+REPO = Path(__file__).resolve().parents[1]
+REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+
+def _redis_or_skip() -> Any:
+    import redis
+
+    client = redis.Redis.from_url(REDIS_URL, socket_connect_timeout=2)
+    try:
+        client.ping()
+    except redis.exceptions.ConnectionError as exc:
+        pytest.skip(f"Redis at {REDIS_URL} unreachable: {exc}")
+    return client
+
+
+@pytest.fixture
+def database_url(tmp_path: Path) -> Iterator[str]:
+    """A fresh PostgreSQL database (a shared SQLite file when PostgreSQL is down)."""
+    from tests.production_support import fresh_database, pg_reachable
+
+    if pg_reachable() is not None:
+        yield f"sqlite:///{tmp_path / 'shared.db'}"
+        return
+    with fresh_database() as url:
+        yield url
+
+
+@pytest.fixture
+def celery_env(tmp_path: Path, database_url: str) -> Iterator[dict[str, Any]]:
+    redis_client = _redis_or_skip()
+    queue = f"fleetmap-test-{uuid.uuid4().hex[:10]}"
+    settings = make_settings(
+        tmp_path, broker_url=REDIS_URL, fusion_queue=queue, database_url=database_url, fuse_debounce_s=1.0
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")}
+    env.update(
+        FLEETMAP_BROKER_URL=REDIS_URL,
+        FLEETMAP_DATABASE_URL=database_url,
+        FLEETMAP_DATA_DIR=str(settings.data_dir),
+        FLEETMAP_FUSION_QUEUE=queue,
+        FLEETMAP_FUSION_PRESET="tiny",
+        FLEETMAP_LEASE_S="60",
+    )
+    log_path = tmp_path / "worker.log"
+    with api(settings) as client:  # migrates the database before the worker starts
+        with open(log_path, "wb") as log:
+            worker = subprocess.Popen(
+                [sys.executable, "-m", "service.cli", "worker", "--concurrency", "1", "--loglevel", "info"],
+                cwd=REPO,
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        try:
+            yield {"client": client, "settings": settings, "worker": worker, "log": log_path}
+        finally:
+            if worker.poll() is None:
+                os.killpg(worker.pid, signal.SIGTERM)
+                try:
+                    worker.wait(30)
+                except subprocess.TimeoutExpired:
+                    os.killpg(worker.pid, signal.SIGKILL)
+                    worker.wait(10)
+            redis_client.delete(queue, f"_kombu.binding.{queue}")
+
+
+def _wait_job(env: dict[str, Any], job_id: str) -> dict[str, Any]:
+    client = env["client"]
+
+    def finished() -> dict[str, Any] | None:
+        assert env["worker"].poll() is None, env["log"].read_text()[-4000:]
+        body = client.get(f"/v1/jobs/{job_id}").json()
+        return body if body["state"] in ("succeeded", "failed") else None
+
+    try:
+        job = wait_for(finished, 300, f"job {job_id}", interval_s=0.5)
+    except AssertionError:
+        raise AssertionError(env["log"].read_text()[-4000:]) from None
+    assert job["state"] == "succeeded", (job, env["log"].read_text()[-4000:])
+    return job
+
+
+def test_celery_worker_fuses_jobs_sent_by_task_name(celery_env: dict[str, Any]) -> None:
+    client = celery_env["client"]
+    for seq in range(2):
+        upload(client, "veh-7/celery", seq, [10.0 + 2 * seq, 10.0, 0.0], agent="veh-7")
+    accepted = client.post("/v1/tiles/0/0/fuse")
+    assert accepted.status_code == 202
+    job = _wait_job(celery_env, accepted.json()["job_id"])
+    assert job["metrics"]["submaps"] == 2
+    tile = client.get("/v1/tiles/0/0").json()
+    assert (tile["state"], tile["version"]) == ("fused", 1)
+    assert client.get("/v1/tiles/0/0/mesh", params={"format": "glb"}).status_code == 200
+
+    # A job whose broker message was lost is sent again by the sweeper and then fused.
+    upload(client, "veh-7/celery", 2, [14.0, 10.0, 0.0], agent="veh-7")
+    factory = session_factory(client.app)
+    settings = celery_env["settings"]
+    original = scheduler.enqueue
+    scheduler.enqueue = lambda job_id, settings=None: False  # type: ignore[assignment]
+    try:
+        with factory() as db:
+            lost = scheduler.request_fusion(db, 0, 0, settings=settings)
+    finally:
+        scheduler.enqueue = original  # type: ignore[assignment]
+    with factory() as db:
+        enqueued_at = db.get(FusionJob, lost.id).enqueued_at
+        later = enqueued_at + timedelta(seconds=scheduler.requeue_after_s(settings) + 1)
+        assert scheduler.tick(db, later, settings).requeued_jobs == [lost.id]
+    job = _wait_job(celery_env, lost.id)
+    assert job["metrics"]["submaps"] == 3
+    tile = client.get("/v1/tiles/0/0").json()
+    assert (tile["state"], tile["version"]) == ("fused", 2)
