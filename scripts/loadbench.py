@@ -1,0 +1,446 @@
+#!/usr/bin/env python3
+"""Load benchmark of the production deployment: many vehicles uploading submaps at once, then tile
+reads while a fusion runs.
+
+By default it starts the deployment itself on loopback (a fresh PostgreSQL database on the given
+server, a private Redis database number and queue, a file blob store under a temporary folder,
+``fleetmap serve --workers N`` and ``fleetmap worker``) and removes it afterwards. With ``--url`` it
+targets a running deployment instead (``--token``: an operator token).
+
+Phases (each bounded in count and time):
+1. upload: ``--clients`` simulated vehicles (httpx, asyncio) POST real synthetic submaps of about
+   ``--submap-kb`` KB until ``--count`` are sent or ``--duration`` seconds pass;
+2. fusion: an operator triggers ``POST /v1/tiles/{i}/{j}/fuse`` on the busiest tile, and readers poll
+   ``GET /v1/tiles`` while the job is queued/running (at most ``--fusion-seconds``).
+
+Prints submaps/s, MB/s, latency percentiles, errors by status, and GET /v1/tiles percentiles.
+
+    .venv/bin/python scripts/loadbench.py --clients 16 --count 4000 --duration 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from fusion.meshio import write_submap_ply  # noqa: E402
+from fusion.types import SemanticMesh  # noqa: E402
+
+# Submaps are square terrain patches; ~52 bytes per grid vertex in binary PLY (vertex + 2 faces).
+BYTES_PER_GRID_VERTEX = 52
+SUBMAP_SIZE_M = 30.0
+STEP_M = 12.0  # distance between consecutive submaps of one vehicle
+
+
+# ---------------------------------------------------------------------------------------- submaps
+
+
+def terrain_submap(n: int, rng: np.random.Generator) -> SemanticMesh:
+    """An n×n-vertex terrain patch, SUBMAP_SIZE_M wide, centred on the local origin (metres):
+    a road strip (label 1) through terrain (4), with random height noise so every upload is unique."""
+    xs = np.linspace(-SUBMAP_SIZE_M / 2, SUBMAP_SIZE_M / 2, n)
+    gx, gy = np.meshgrid(xs, xs, indexing="ij")
+    gz = 0.3 * np.sin(gx / 5.0) + 0.2 * np.cos(gy / 7.0) + rng.normal(0.0, 0.02, gx.shape)
+    vertices = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    on_road = np.abs(vertices[faces[:, 0], 1]) < 4.0
+    labels = np.where(on_road, 1, 4).astype(np.int64)
+    return SemanticMesh(vertices=vertices, faces=faces.astype(np.int64), face_labels=labels)
+
+
+@dataclass
+class Upload:
+    """One prepared request: the meta JSON and the mesh bytes."""
+
+    agent_id: str
+    meta: str
+    mesh: bytes
+
+
+def vehicle_uploads(vehicle: int, count: int, grid_n: int, run_id: str) -> list[Upload]:
+    """``count`` consecutive submaps of one vehicle driving east along its own lane (map frame)."""
+    rng = np.random.default_rng(vehicle)
+    agent = f"bench-{run_id}-veh-{vehicle:03d}"
+    session = f"{agent}/{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}"
+    y = 40.0 * vehicle
+    uploads = []
+    for seq in range(count):
+        x = STEP_M * seq
+        meta = {
+            "agent_id": agent,
+            "session_id": session,
+            "seq": seq,
+            "captured_at": "2026-11-24T08:00:00Z",
+            "gps": {"pose": {"t": [x, y, 0.0], "q": [1.0, 0.0, 0.0, 0.0]}},
+            "gps_sigma": {"trans_m": 1.0, "rot_deg": 1.0},
+            "odometry": {"t": [x, 0.0, 0.0], "q": [1.0, 0.0, 0.0, 0.0]},
+        }
+        mesh = write_submap_ply(terrain_submap(grid_n, rng))
+        uploads.append(Upload(agent, json.dumps(meta), mesh))
+    return uploads
+
+
+# -------------------------------------------------------------------------------------- statistics
+
+
+def cpu_snapshot(api_pid: int | None) -> dict[str, float]:
+    """CPU seconds used so far by this client, the API process tree and PostgreSQL (needs psutil)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    snap = {"client": usage.ru_utime + usage.ru_stime}
+    try:
+        import psutil
+    except ImportError:
+        return snap
+    if api_pid is not None:
+        with contextlib.suppress(psutil.Error):
+            root = psutil.Process(api_pid)
+            snap["api"] = sum(sum(p.cpu_times()[:2]) for p in [root, *root.children(recursive=True)])
+    pg = 0.0
+    for proc in psutil.process_iter(["name"]):
+        if proc.info["name"] in {"postgres", "postmaster"}:
+            with contextlib.suppress(psutil.Error):
+                pg += sum(proc.cpu_times()[:2])
+    snap["postgres"] = pg
+    return snap
+
+
+@dataclass
+class Samples:
+    """Latencies (seconds) and status counts of one kind of request."""
+
+    latencies: list[float] = field(default_factory=list)
+    statuses: Counter[str] = field(default_factory=Counter)
+    bytes_sent: int = 0
+
+    def add(self, status: str, latency_s: float, nbytes: int = 0) -> None:
+        self.statuses[status] += 1
+        self.latencies.append(latency_s)
+        self.bytes_sent += nbytes
+
+    def pct(self, q: float) -> float:
+        """Percentile ``q`` in milliseconds (nan without samples)."""
+        return float(np.percentile(self.latencies, q) * 1e3) if self.latencies else float("nan")
+
+
+def _ok(status: str) -> bool:
+    return status in {"200", "201", "202", "304"}
+
+
+# --------------------------------------------------------------------------------------- phases
+
+
+async def upload_phase(
+    url: str, tokens: dict[str, str], queues: list[list[Upload]], duration_s: float, timeout_s: float
+) -> tuple[Samples, float, Counter[tuple[int, int]]]:
+    """Every vehicle uploads its queue in order; returns samples, elapsed seconds and tile hit counts."""
+    samples = Samples()
+    tiles: Counter[tuple[int, int]] = Counter()
+    deadline = time.monotonic() + duration_s
+    limits = httpx.Limits(max_connections=len(queues) + 4, max_keepalive_connections=len(queues) + 4)
+
+    async with httpx.AsyncClient(base_url=url, timeout=timeout_s, limits=limits) as client:
+
+        async def vehicle(queue: list[Upload]) -> None:
+            for item in queue:
+                if time.monotonic() >= deadline:
+                    return
+                headers = {"Authorization": f"Bearer {tokens[item.agent_id]}"}
+                files = {"meta": (None, item.meta, "application/json"), "mesh": ("submap.ply", item.mesh)}
+                start = time.perf_counter()
+                try:
+                    response = await client.post("/v1/submaps", files=files, headers=headers)
+                    status = str(response.status_code)
+                except httpx.HTTPError as exc:
+                    status = type(exc).__name__
+                samples.add(status, time.perf_counter() - start, len(item.mesh))
+                if status in {"200", "201"}:
+                    for i, j in response.json()["tiles"]:
+                        tiles[(i, j)] += 1
+
+        began = time.perf_counter()
+        await asyncio.gather(*(vehicle(q) for q in queues))
+        return samples, time.perf_counter() - began, tiles
+
+
+async def fusion_phase(
+    url: str, operator: str, tile: tuple[int, int], readers: int, max_s: float, timeout_s: float
+) -> tuple[Samples, Samples, str]:
+    """Trigger a fusion of ``tile``; poll GET /v1/tiles from ``readers`` clients until the job ends or
+    ``max_s`` passes. Returns (tile-list samples, job-poll samples, final job state)."""
+    reads, polls = Samples(), Samples()
+    headers = {"Authorization": f"Bearer {operator}"}
+    async with httpx.AsyncClient(base_url=url, timeout=timeout_s, headers=headers) as client:
+        response = await client.post(f"/v1/tiles/{tile[0]}/{tile[1]}/fuse")
+        if response.status_code != 202:
+            return reads, polls, f"trigger failed: {response.status_code} {response.text[:200]}"
+        job_id = response.json()["job_id"]
+        deadline = time.monotonic() + max_s
+        state = "queued"
+        saw_running = False
+
+        async def reader() -> None:
+            while time.monotonic() < deadline and state in {"queued", "running"}:
+                start = time.perf_counter()
+                try:
+                    status = str((await client.get("/v1/tiles", params={"limit": 100})).status_code)
+                except httpx.HTTPError as exc:
+                    status = type(exc).__name__
+                # Only reads while the worker is busy count as "during fusion".
+                if saw_running:
+                    reads.add(status, time.perf_counter() - start)
+                await asyncio.sleep(0.01)
+
+        async def watcher() -> None:
+            nonlocal state, saw_running
+            while time.monotonic() < deadline and state in {"queued", "running"}:
+                start = time.perf_counter()
+                job = await client.get(f"/v1/jobs/{job_id}")
+                polls.add(str(job.status_code), time.perf_counter() - start)
+                if job.status_code == 200:
+                    state = job.json()["state"]
+                    saw_running = saw_running or state == "running"
+                await asyncio.sleep(0.5)
+
+        await asyncio.gather(watcher(), *(reader() for _ in range(readers)))
+        return reads, polls, state
+
+
+# ------------------------------------------------------------------------------------- deployment
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _fleetmap(*args: str) -> list[str]:
+    return [sys.executable, "-m", "service.cli", *args]
+
+
+@contextlib.contextmanager
+def local_deployment(
+    args: argparse.Namespace, vehicles: list[str]
+) -> Iterator[tuple[str, str, dict[str, str]]]:
+    """Start PostgreSQL-database + Redis + API + worker on loopback; yields (url, operator, tokens)."""
+    import psycopg
+    from sqlalchemy.engine import make_url
+
+    run = uuid.uuid4().hex[:10]
+    admin = make_url(args.pg_url)
+    db_name = f"fleetmap_bench_{run}"
+    dsn = admin.set(drivername="postgresql").render_as_string(hide_password=False)
+    with psycopg.connect(dsn, autocommit=True, connect_timeout=5) as conn:
+        conn.execute(f'CREATE DATABASE "{db_name}"')
+    workdir = Path(tempfile.mkdtemp(prefix="fleetmap-bench-"))
+    procs: list[subprocess.Popen[bytes]] = []
+    env = dict(os.environ)
+    env.update(
+        FLEETMAP_DATABASE_URL=admin.set(database=db_name).render_as_string(hide_password=False),
+        FLEETMAP_BROKER_URL=args.redis_url,
+        FLEETMAP_FUSION_QUEUE=f"fusion-bench-{run}",
+        FLEETMAP_BLOB_URL=args.blob_url or f"file://{workdir / 'blobs'}",
+        FLEETMAP_DATA_DIR=str(workdir),
+        FLEETMAP_AUTH="on",
+        FLEETMAP_LOG_LEVEL="WARNING",
+    )
+    try:
+        subprocess.run(_fleetmap("db", "upgrade"), cwd=REPO, env=env, check=True, capture_output=True)
+        tokens = {}
+        for name, role in [("bench-operator", "operator")] + [(v, "vehicle") for v in vehicles]:
+            tokens[name] = _create_token(env, role, name)
+        port = _free_port()
+        log = open(workdir / "api.log", "ab")  # noqa: SIM115 - the child owns it
+        procs.append(
+            subprocess.Popen(
+                _fleetmap(
+                    "serve", "--host", "127.0.0.1", "--port", str(port), "--workers", str(args.api_workers)
+                ),
+                cwd=REPO,
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        )
+        for k in range(args.fusion_workers):
+            wlog = open(workdir / f"worker{k}.log", "ab")  # noqa: SIM115
+            procs.append(
+                subprocess.Popen(
+                    _fleetmap("worker", "--concurrency", "1"),
+                    cwd=REPO,
+                    env=env,
+                    stdout=wlog,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,
+                )
+            )
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 60
+        while True:
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
+                    break
+            if time.monotonic() > deadline or procs[0].poll() is not None:
+                raise RuntimeError(f"API did not become ready; log: {workdir / 'api.log'}")
+            time.sleep(0.3)
+        print(f"deployment: {url} db={db_name} broker={args.redis_url} logs={workdir}", flush=True)
+        yield url, tokens.pop("bench-operator"), tokens, procs[0].pid
+    finally:
+        for proc in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGTERM)
+        for proc in procs:
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(5)
+        with psycopg.connect(dsn, autocommit=True, connect_timeout=5) as conn:
+            conn.execute(f'DROP DATABASE IF EXISTS "{db_name}" WITH (FORCE)')
+        if not args.keep:
+            shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _create_token(env: dict[str, str], role: str, name: str) -> str:
+    out = subprocess.run(
+        _fleetmap("token", "create", "--role", role, "--name", name),
+        cwd=REPO,
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    secrets = [w for w in out.split() if w.startswith("fm_")]
+    if not secrets:
+        raise RuntimeError(f"no token in `fleetmap token create` output: {out!r}")
+    return secrets[0]
+
+
+# ------------------------------------------------------------------------------------------- main
+
+
+def report(title: str, samples: Samples, elapsed_s: float | None = None) -> None:
+    n = len(samples.latencies)
+    ok = sum(c for s, c in samples.statuses.items() if _ok(s))
+    errors = {s: c for s, c in samples.statuses.items() if not _ok(s)}
+    line = f"{title}: n={n} ok={ok} errors={errors or 0}"
+    if elapsed_s:
+        line += f" | {ok / elapsed_s:.1f} req/s, {samples.bytes_sent / elapsed_s / 1e6:.1f} MB/s over {elapsed_s:.1f} s"
+    line += f" | p50 {samples.pct(50):.1f} ms, p90 {samples.pct(90):.1f} ms, p99 {samples.pct(99):.1f} ms, max {samples.pct(100):.1f} ms"
+    print(line, flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--url", help="target a running deployment instead of starting one")
+    parser.add_argument("--token", help="operator token for --url (uploads under any agent id)")
+    parser.add_argument("--clients", type=int, default=16, help="concurrent simulated vehicles")
+    parser.add_argument("--count", type=int, default=3000, help="total submaps to upload at most")
+    parser.add_argument("--duration", type=float, default=30.0, help="upload phase limit, seconds")
+    parser.add_argument("--submap-kb", type=float, default=200.0, help="approximate submap size, KB")
+    parser.add_argument("--readers", type=int, default=4, help="concurrent GET /v1/tiles clients")
+    parser.add_argument("--fusion-seconds", type=float, default=60.0, help="fusion phase limit, seconds")
+    parser.add_argument("--no-fusion", action="store_true", help="skip the fusion phase")
+    parser.add_argument("--timeout", type=float, default=30.0, help="per-request timeout, seconds")
+    parser.add_argument("--api-workers", type=int, default=2, help="uvicorn worker processes")
+    parser.add_argument("--fusion-workers", type=int, default=1, help="`fleetmap worker` processes")
+    parser.add_argument(
+        "--pg-url",
+        default=os.environ.get(
+            "FLEETMAP_TEST_DATABASE_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+        ),
+        help="PostgreSQL server (any database on it) where a fresh benchmark database is created",
+    )
+    parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/14", help="Celery broker")
+    parser.add_argument("--blob-url", default="", help="blob store (default: file store in a temp dir)")
+    parser.add_argument("--keep", action="store_true", help="keep the temporary folder (logs, blobs)")
+    args = parser.parse_args(argv)
+
+    run_id = uuid.uuid4().hex[:6]
+    per_vehicle = max(1, -(-args.count // args.clients))
+    grid_n = max(4, int(round((args.submap_kb * 1024 / BYTES_PER_GRID_VERTEX) ** 0.5)))
+    began = time.perf_counter()
+    queues = [vehicle_uploads(v, per_vehicle, grid_n, run_id) for v in range(args.clients)]
+    remaining = args.count  # trim so that exactly --count are prepared
+    for queue in queues:
+        del queue[min(len(queue), remaining) :]
+        remaining -= len(queue)
+    sizes = [len(u.mesh) for q in queues for u in q]
+    print(
+        f"prepared {len(sizes)} submaps ({np.mean(sizes) / 1024:.0f} KB each, {grid_n}x{grid_n} grid) "
+        f"for {args.clients} vehicles in {time.perf_counter() - began:.1f} s",
+        flush=True,
+    )
+    vehicles = [q[0].agent_id for q in queues if q]
+
+    if args.url:
+        if not args.token:
+            parser.error("--url needs --token (an operator token)")
+        deployment: contextlib.AbstractContextManager[tuple[str, str, dict[str, str]]] = (
+            contextlib.nullcontext((args.url.rstrip("/"), args.token, {v: args.token for v in vehicles}))
+        )
+    else:
+        deployment = local_deployment(args, vehicles)
+
+    with deployment as (url, operator, tokens, api_pid):
+        cpu_before = cpu_snapshot(api_pid)
+        samples, elapsed, tiles = asyncio.run(
+            upload_phase(url, tokens, [q for q in queues if q], args.duration, args.timeout)
+        )
+        cpu_after = cpu_snapshot(api_pid)
+        report("POST /v1/submaps", samples, elapsed)
+        ok = max(1, sum(c for s, c in samples.statuses.items() if _ok(s)))
+        print(
+            "CPU during uploads: "
+            + ", ".join(
+                f"{name} {cpu_after[name] - cpu_before[name]:.1f} s ({(cpu_after[name] - cpu_before[name]) / ok * 1e3:.1f} ms/submap)"
+                for name in cpu_after
+                if name in cpu_before
+            )
+            + f"; {os.cpu_count()} cores, {elapsed:.1f} s wall",
+            flush=True,
+        )
+        if args.no_fusion or not tiles:
+            return 0 if not any(not _ok(s) for s in samples.statuses) else 1
+        tile = tiles.most_common(1)[0][0]
+        reads, polls, state = asyncio.run(
+            fusion_phase(url, operator, tile, args.readers, args.fusion_seconds, args.timeout)
+        )
+        print(f"fusion of tile {tile}: job state at the end of the phase: {state}", flush=True)
+        report("GET /v1/tiles during fusion", reads)
+        report("GET /v1/jobs/{id} during fusion", polls)
+    errors = sum(c for s, c in samples.statuses.items() if not _ok(s))
+    return 0 if errors == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
