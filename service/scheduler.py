@@ -23,11 +23,11 @@ from datetime import datetime, timedelta
 from functools import lru_cache
 from typing import Any
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import and_, exists, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.sql.elements import ColumnElement
 
-from service.models import FusionJob, JobState, JobTrigger, Tile, TileState, new_id, utcnow
+from service.models import FusionJob, JobState, JobTrigger, Submap, Tile, TileState, new_id, utcnow
 from service.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
@@ -142,11 +142,20 @@ def _queue_tile(
     return job
 
 
+def owns_submaps(i_column: Any, j_column: Any) -> ColumnElement[bool]:
+    """Whether the tile is the home tile of some submap. Such tiles are fused first: they refine the
+    poses that their neighbours hold fixed, so the neighbours then fuse once, with refined poses."""
+    return exists().where(Submap.home_i == i_column, Submap.home_j == j_column)
+
+
 def schedule_due_tiles(db: Session, now: datetime, settings: Settings) -> list[FusionJob]:
     """Queue every due tile (one conditional UPDATE each); returns the jobs this process created."""
     condition = _due(now, settings)
     candidates = db.execute(
-        select(Tile.i, Tile.j).where(condition).order_by(Tile.dirty_since).limit(TICK_BATCH)
+        select(Tile.i, Tile.j)
+        .where(condition)
+        .order_by(owns_submaps(Tile.i, Tile.j).desc(), Tile.dirty_since)
+        .limit(TICK_BATCH)
     ).all()
     db.rollback()  # end the read transaction before writing (SQLite: no stale snapshot)
     jobs = []

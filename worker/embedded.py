@@ -93,8 +93,9 @@ def _raise_shutdown(_signum: int, _frame: FrameType | None) -> None:
 
 
 def next_queued_job(settings: Settings, skip: dict[str, float]) -> str | None:
-    """The oldest queued job not skipped recently."""
+    """The next queued job not skipped recently: home tiles of submaps first, then the oldest."""
     from service.models import FusionJob, JobState
+    from service.scheduler import owns_submaps
     from worker.jobs import _session_factory
 
     now = time.monotonic()
@@ -102,7 +103,7 @@ def next_queued_job(settings: Settings, skip: dict[str, float]) -> str | None:
         ids = db.execute(
             select(FusionJob.id)
             .where(FusionJob.state == JobState.queued.value)
-            .order_by(FusionJob.created_at)
+            .order_by(owns_submaps(FusionJob.tile_i, FusionJob.tile_j).desc(), FusionJob.created_at)
             .limit(len(skip) + 1)
         ).scalars()
         return next((job_id for job_id in ids if skip.get(job_id, 0.0) < now), None)
