@@ -1,0 +1,325 @@
+"""Real servers for the production tests: a throwaway PostgreSQL database, a private redis-server,
+moto's S3 server, a cuttable loopback TCP proxy, and `fleetmap serve` / `fleetmap worker` processes.
+
+Everything binds to 127.0.0.1 on free ports and is torn down by the fixtures that start it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_PG_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def wait_until(predicate: Callable[[], Any], timeout_s: float, what: str, interval_s: float = 0.1) -> Any:
+    """Poll ``predicate`` until it returns a truthy value or ``timeout_s`` passes (then fail)."""
+    deadline = time.monotonic() + timeout_s
+    last_exc: BaseException | None = None
+    while time.monotonic() < deadline:
+        try:
+            value = predicate()
+        except Exception as exc:  # polled again until the deadline
+            last_exc = exc
+        else:
+            if value:
+                return value
+        time.sleep(interval_s)
+    raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what} (last error: {last_exc!r})")
+
+
+# --- PostgreSQL -------------------------------------------------------------------------------------
+
+
+def pg_admin_url() -> str:
+    return os.environ.get("FLEETMAP_TEST_DATABASE_URL", DEFAULT_PG_URL)
+
+
+def _psycopg_dsn(sqlalchemy_url: str) -> str:
+    return sqlalchemy_url.replace("postgresql+psycopg://", "postgresql://", 1)
+
+
+def pg_reachable() -> str | None:
+    """None if the test PostgreSQL answers, else why not."""
+    import psycopg
+
+    try:
+        with psycopg.connect(_psycopg_dsn(pg_admin_url()), connect_timeout=3) as conn:
+            conn.execute("SELECT 1")
+    except psycopg.Error as exc:
+        return f"PostgreSQL at {pg_admin_url()} unreachable: {exc}"
+    return None
+
+
+@contextlib.contextmanager
+def fresh_database() -> Iterator[str]:
+    """A new, empty database ``fleetmap_test_<random>`` on the test server; dropped afterwards.
+    Yields its SQLAlchemy URL."""
+    import psycopg
+    from sqlalchemy.engine import make_url
+
+    admin = pg_admin_url()
+    name = f"fleetmap_test_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(_psycopg_dsn(admin), autocommit=True, connect_timeout=5) as conn:
+        conn.execute(f'CREATE DATABASE "{name}"')
+    try:
+        yield make_url(admin).set(database=name).render_as_string(hide_password=False)
+    finally:
+        with psycopg.connect(_psycopg_dsn(admin), autocommit=True, connect_timeout=5) as conn:
+            conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+
+# --- Redis ------------------------------------------------------------------------------------------
+
+
+class RedisServer:
+    """A private redis-server on a free loopback port (no persistence: a restart loses the queue)."""
+
+    def __init__(self, workdir: Path) -> None:
+        self.port = free_port()
+        self.workdir = workdir
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self) -> None:
+        binary = shutil.which("redis-server")
+        if binary is None:
+            pytest.skip("redis-server is not installed")
+        self.proc = subprocess.Popen(
+            [binary, "--bind", "127.0.0.1", "--port", str(self.port), "--save", "", "--appendonly", "no"],
+            cwd=self.workdir,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        import redis
+
+        client = redis.Redis(host="127.0.0.1", port=self.port, socket_timeout=1)
+        wait_until(client.ping, 15, f"redis-server on port {self.port}")
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        self.proc = None
+
+
+# --- a cuttable TCP proxy ---------------------------------------------------------------------------
+
+
+class TcpProxy:
+    """Forwards 127.0.0.1:<port> to a target; ``cut()`` drops every connection and refuses new ones
+    (an outage as clients see it), ``restore()`` accepts again on the same port."""
+
+    def __init__(self, target_host: str, target_port: int) -> None:
+        self.target = (target_host, target_port)
+        self.port = free_port()
+        self._lock = threading.Lock()
+        self._conns: list[socket.socket] = []
+        self._listener: socket.socket | None = None
+        self._stop = threading.Event()
+        self._accepting = threading.Event()
+        self._thread = threading.Thread(target=self._accept_loop, daemon=True)
+
+    def start(self) -> TcpProxy:
+        self._open_listener()
+        self._thread.start()
+        return self
+
+    def _open_listener(self) -> None:
+        listener = socket.socket()
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind(("127.0.0.1", self.port))
+        listener.listen(128)
+        listener.settimeout(0.2)
+        self._listener = listener
+        self._accepting.set()
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            if not self._accepting.wait(0.2):
+                continue
+            listener = self._listener
+            if listener is None:
+                continue
+            try:
+                client, _ = listener.accept()
+            except (TimeoutError, OSError):
+                continue
+            try:
+                upstream = socket.create_connection(self.target, timeout=5)
+            except OSError:
+                client.close()
+                continue
+            with self._lock:
+                self._conns += [client, upstream]
+            threading.Thread(target=self._pump, args=(client, upstream), daemon=True).start()
+
+    def _pump(self, a: socket.socket, b: socket.socket) -> None:
+        try:
+            while not self._stop.is_set():
+                readable, _, _ = select.select([a, b], [], [], 0.5)
+                for src in readable:
+                    data = src.recv(65536)
+                    if not data:
+                        return
+                    (b if src is a else a).sendall(data)
+        except (OSError, ValueError):
+            return
+        finally:
+            for sock in (a, b):
+                with contextlib.suppress(OSError):
+                    sock.close()
+
+    def cut(self) -> None:
+        """Close the listener and reset every open connection."""
+        self._accepting.clear()
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+        with self._lock:
+            conns, self._conns = self._conns, []
+        for sock in conns:
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+            with contextlib.suppress(OSError):
+                sock.close()
+
+    def restore(self) -> None:
+        self._open_listener()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.cut()
+        self._thread.join(5)
+
+
+# --- fleetmap processes -----------------------------------------------------------------------------
+
+
+def fleetmap_cmd(*args: str) -> list[str]:
+    """The ``fleetmap`` CLI as a command line (works without the console script being installed)."""
+    return [sys.executable, "-m", "service.cli", *args]
+
+
+def run_cli(env: dict[str, str], *args: str, timeout_s: float = 120) -> str:
+    """Run one ``fleetmap`` command to completion; returns stdout, fails the test on error."""
+    done = subprocess.run(
+        fleetmap_cmd(*args), cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout_s
+    )
+    if done.returncode != 0:
+        raise AssertionError(f"fleetmap {' '.join(args)} failed ({done.returncode}): {done.stderr[-3000:]}")
+    return done.stdout
+
+
+class FleetmapProcess:
+    """A long-running ``fleetmap`` subprocess (serve or worker) in its own process group."""
+
+    def __init__(self, name: str, args: list[str], env: dict[str, str], logdir: Path) -> None:
+        self.name = name
+        self.args = args
+        self.env = env
+        self.log_path = logdir / f"{name}.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> FleetmapProcess:
+        log = open(self.log_path, "ab")  # handed to the child, closed below
+        self.proc = subprocess.Popen(
+            fleetmap_cmd(*self.args),
+            cwd=REPO,
+            env=self.env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        log.close()
+        return self
+
+    @property
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def signal_group(self, sig: int) -> None:
+        """Send ``sig`` to the process and all its children (uvicorn/celery pool workers)."""
+        if self.proc is not None and self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, sig)
+
+    def kill(self) -> None:
+        """SIGKILL the whole process group (a crash: no cleanup, no acks)."""
+        self.signal_group(signal.SIGKILL)
+        if self.proc is not None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.proc.wait(10)
+
+    def stop(self, grace_s: float = 10) -> None:
+        """SIGTERM, then SIGKILL after ``grace_s``."""
+        if not self.alive:
+            self.kill()  # reap children left behind by a dead parent
+            return
+        self.signal_group(signal.SIGTERM)
+        assert self.proc is not None
+        try:
+            self.proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+        self.kill()
+
+    def log_tail(self, chars: int = 4000) -> str:
+        with contextlib.suppress(OSError):
+            return self.log_path.read_text(errors="replace")[-chars:]
+        return ""
+
+
+def start_api(
+    env: dict[str, str], logdir: Path, *, workers: int = 1, name: str = "api"
+) -> tuple[FleetmapProcess, str]:
+    """Start ``fleetmap serve`` on a free port and wait for /healthz; returns (process, base URL)."""
+    port = free_port()
+    proc = FleetmapProcess(
+        name, ["serve", "--host", "127.0.0.1", "--port", str(port), "--workers", str(workers)], env, logdir
+    ).start()
+    base = f"http://127.0.0.1:{port}"
+
+    def healthy() -> bool:
+        if not proc.alive:
+            raise AssertionError(f"{name} exited:\n{proc.log_tail()}")
+        return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+
+    try:
+        wait_until(healthy, 60, f"{name} /healthz")
+    except AssertionError:
+        proc.stop()
+        raise AssertionError(f"{name} did not become healthy:\n{proc.log_tail()}") from None
+    return proc, base
+
+
+def start_worker(env: dict[str, str], logdir: Path, name: str = "worker") -> FleetmapProcess:
+    """Start one ``fleetmap worker`` (concurrency 1) consuming the fusion queue."""
+    return FleetmapProcess(name, ["worker", "--concurrency", "1"], env, logdir).start()
