@@ -33,6 +33,8 @@ class Settings(BaseSettings):
     fusion_queue: str = "fusion"
     scheduler_interval_s: float = Field(default=5.0, gt=0)
     lease_s: float = Field(default=1800.0, gt=0, description="Fusion lease length per tile, seconds")
+    fuse_requeue_s: float = Field(default=600.0, gt=0, description="Re-send a job still queued after this")
+    fusion_time_limit_s: float = Field(default=3600.0, gt=0, description="Soft time limit of one fusion")
     # PostgreSQL connection handling (ignored on SQLite). Small timeouts: an outage must give quick
     # 503s, never requests that hang.
     db_pool_size: int = Field(default=10, ge=1, description="Connections kept open per process")
