@@ -1,0 +1,204 @@
+"""Benchmark on a synthetic fleet: simulate, fuse one 64 m tile the way the offline path does,
+evaluate against the ground truth, print a table (and optionally write every figure as JSON).
+
+Rows are functions ``row_*(ctx) -> dict`` registered in ``ROWS``; to add an ablation, write one more
+function (e.g. fuse with a changed ``FusionConfig``) and register it. ``evaluate_mesh`` turns a fused
+mesh into the reconstruction figures, ``pose_figures`` refined poses into the pose figures.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fusion import metrics
+from fusion.labels import LABELS
+from fusion.offline import LoadedSubmap, fuse_tiles, load_directory
+from fusion.synth.simulate import GroundTruth, load_ground_truth, simulate
+from fusion.types import FusedMesh, Pose
+
+TILE = (0, 0)
+TILE_SIZE = 64.0
+D = metrics.DEFAULT_D
+
+# what the bench must be able to show (the fusion is tuned elsewhere; the bench only reports)
+TARGETS = {
+    "pose_trans_reduction": 0.60, "pose_rot_reduction": 0.50, "geo_f": 0.85, "sem_f": 0.70,
+    "oracle_geo_f": 0.90, "transient_survival_max": 0.20, "wall_s_per_tile_max": 90.0,
+}
+
+
+@dataclass
+class BenchContext:
+    """Everything a row needs: the simulated uploads, the truth (as point sets, map frame) and the config."""
+
+    config: Any
+    submaps: list[LoadedSubmap]
+    truth: GroundTruth
+    region: metrics.Region
+    gt_all: metrics.PointSet
+    gt_observed: metrics.PointSet
+    transient: metrics.PointSet
+    rows: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    @property
+    def home(self) -> list[LoadedSubmap]:
+        return [s for s in self.submaps if s.home == TILE]
+
+
+def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY) -> BenchContext:
+    """Load the uploads the way the offline path does, and the truth cropped to the benchmark tile."""
+    submaps = load_directory(sim_dir, TILE_SIZE)
+    truth = load_ground_truth(sim_dir)
+    lo = (TILE[0] * TILE_SIZE, TILE[1] * TILE_SIZE)
+    region = (lo, (lo[0] + TILE_SIZE, lo[1] + TILE_SIZE))
+    gt = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=2), region)
+    obs = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=3,
+                                              face_mask=truth.observed), region)
+    tr = metrics.crop(metrics.sample_surface(truth.transient_vertices, truth.transient_faces, truth.transient_labels,
+                                             density, seed=4, face_mask=truth.transient_observed), region)
+    # only the parts of transient objects that stand clear of the static world can be told apart
+    if len(tr) and len(gt):
+        dist, _ = cKDTree(gt.points).query(tr.points, distance_upper_bound=2 * D)
+        tr = tr.subset(dist > 2 * D)
+    return BenchContext(config, submaps, truth, region, gt, obs, tr)
+
+
+def evaluate_mesh(ctx: BenchContext, mesh: FusedMesh) -> dict[str, Any]:
+    """Geometric P/R/F, mean semantic F (per class too) and surviving transient share of a fused mesh."""
+    pred = metrics.crop(metrics.sample_surface(mesh.vertices, mesh.faces, mesh.face_labels, seed=1), ctx.region)
+    p, r, f = metrics.geometric_prf(pred, ctx.gt_all, D, ctx.region, ctx.gt_observed)
+    sem, per_class = metrics.semantic_f1(pred, ctx.gt_all, D, ctx.region, ctx.gt_observed)
+    survive = None
+    if len(ctx.transient) and len(pred):
+        dist, _ = cKDTree(pred.points).query(ctx.transient.points, distance_upper_bound=D)
+        survive = float(np.mean(dist <= D))
+    return {"geo_p": p, "geo_r": r, "geo_f": f, "sem_f": sem, "transient_survival": survive,
+            "per_class_f": {LABELS[k].name: v[2] for k, v in per_class.items()}, "faces": int(len(mesh.faces))}
+
+
+def pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, float]:
+    """Pose RMSE (m, deg) of the tile's home submaps after rigid alignment to the truth."""
+    home = [s for s in ctx.home if s.input.id in poses]
+    if not home:
+        return {}
+    t, r = metrics.pose_rmse([poses[s.input.id] for s in home], [ctx.truth.poses[s.input.id] for s in home])
+    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(home)}
+
+
+def _fuse(ctx: BenchContext, fixed: dict[str, Pose] | None = None) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    results = fuse_tiles(ctx.submaps, [TILE], ctx.config, TILE_SIZE, fixed_poses=fixed)
+    wall = time.perf_counter() - t0
+    res = results[TILE]
+    out = evaluate_mesh(ctx, res.mesh) | {"wall_s": wall, "points_per_s": res.metrics.get("points_per_s")}
+    return out | {"_poses": res.poses}
+
+
+def row_gps(ctx: BenchContext) -> dict[str, Any]:
+    """Input: GPS poses, no fusion (pose figures only)."""
+    return pose_figures(ctx, {s.input.id: s.pose_gps for s in ctx.submaps})
+
+
+def row_fused(ctx: BenchContext) -> dict[str, Any]:
+    """Joint field + pose optimisation from GPS, as the offline path does for the tile."""
+    out = _fuse(ctx)
+    return out | pose_figures(ctx, out.pop("_poses"))
+
+
+def row_oracle(ctx: BenchContext) -> dict[str, Any]:
+    """Same fusion with every submap held at its true pose (no pose optimisation)."""
+    out = _fuse(ctx, fixed=dict(ctx.truth.poses))
+    out.pop("_poses")
+    return out
+
+
+ROWS: dict[str, Callable[[BenchContext], dict[str, Any]]] = {"gps": row_gps, "fused": row_fused, "oracle": row_oracle}
+
+
+def _peak_memory() -> dict[str, float | None]:
+    rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    gpu = None
+    if "torch" in sys.modules:
+        import torch
+
+        if torch.cuda.is_available():
+            gpu = torch.cuda.max_memory_allocated() / 2**20
+    return {"peak_rss_mib": rss_mib, "peak_gpu_mib": gpu}
+
+
+def check_targets(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Each target with its measured value and whether it is met."""
+    gps, fused, oracle = rows.get("gps", {}), rows.get("fused", {}), rows.get("oracle", {})
+    out: dict[str, dict[str, Any]] = {}
+
+    def put(name: str, value: float | None, ok: Callable[[float], bool]) -> None:
+        out[name] = {"target": TARGETS[name], "value": value, "met": None if value is None else bool(ok(value))}
+
+    for key, name in (("pose_trans_m", "pose_trans_reduction"), ("pose_rot_deg", "pose_rot_reduction")):
+        value = 1 - fused[key] / gps[key] if key in fused and gps.get(key) else None
+        put(name, value, lambda v, n=name: v >= TARGETS[n])
+    put("geo_f", fused.get("geo_f"), lambda v: v >= TARGETS["geo_f"])
+    put("sem_f", fused.get("sem_f"), lambda v: v >= TARGETS["sem_f"])
+    put("oracle_geo_f", oracle.get("geo_f"), lambda v: v >= TARGETS["oracle_geo_f"])
+    put("transient_survival_max", fused.get("transient_survival"), lambda v: v <= TARGETS["transient_survival_max"])
+    put("wall_s_per_tile_max", fused.get("wall_s"), lambda v: v <= TARGETS["wall_s_per_tile_max"])
+    return out
+
+
+def _fmt(v: Any, spec: str = ".3f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def format_table(report: dict[str, Any]) -> str:
+    cols = [("geo P", "geo_p", ".3f"), ("geo R", "geo_r", ".3f"), ("geo F", "geo_f", ".3f"), ("sem F", "sem_f", ".3f"),
+            ("trans m", "pose_trans_m", ".3f"), ("rot deg", "pose_rot_deg", ".3f"),
+            ("transient", "transient_survival", ".1%"), ("wall s", "wall_s", ".1f"), ("pts/s", "points_per_s", ".3g")]
+    lines = [f"{'row':<8}" + "".join(f"{c[0]:>11}" for c in cols)]
+    for name, row in report["rows"].items():
+        lines.append(f"{name:<8}" + "".join(f"{_fmt(row.get(k), s):>11}" for _, k, s in cols))
+    mem = report["memory"]
+    lines.append(f"peak memory: {mem['peak_rss_mib']:.0f} MiB RSS" +
+                 (f", {mem['peak_gpu_mib']:.0f} MiB GPU" if mem["peak_gpu_mib"] is not None else ""))
+    lines.append(f"submaps {report['submaps']} ({report['home_submaps']} homed in tile {TILE}), sessions "
+                 f"{report['sessions']}, preset {report['preset']}, seed {report['seed']}, simulate {report['simulate_s']:.1f} s")
+    for name, t in report["targets"].items():
+        mark = {True: "ok", False: "MISSED", None: "n/a"}[t["met"]]
+        lines.append(f"  target {name:<24} {_fmt(t['value'])} (target {t['target']}) {mark}")
+    return "\n".join(lines)
+
+
+def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
+              json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
+              out: Callable[[str], None] = print) -> dict[str, Any]:
+    """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
+    ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
+    (and optionally write to ``json_path``) every figure."""
+    from fusion.config import FusionConfig
+
+    cfg = config or FusionConfig.preset(preset)
+    with tempfile.TemporaryDirectory(prefix="fleetmap-bench-") as tmp:
+        t0 = time.perf_counter()
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise)
+        sim_s = time.perf_counter() - t0
+        ctx = prepare(Path(tmp), cfg)
+    for name in rows or list(ROWS):
+        ctx.rows[name] = ROWS[name](ctx)
+    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "simulate_s": sim_s,
+              "submaps": len(ctx.submaps), "home_submaps": len(ctx.home), "tile": list(TILE), "d_m": D,
+              "rows": ctx.rows, "memory": _peak_memory(), "config": cfg.to_dict()}
+    report["targets"] = check_targets(ctx.rows)
+    out(format_table(report))
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(report, indent=1, default=str))
+    return report
