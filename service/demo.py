@@ -101,7 +101,7 @@ def upload_all(client: httpx.Client, sim_dir: Path, records: list[Any]) -> dict[
     """POST every simulated submap like a vehicle; returns submap name → server id."""
     ids = {}
     for k, record in enumerate(records, 1):
-        files = {
+        files: dict[str, Any] = {
             "meta": (None, json.dumps(record.meta()), "application/json"),
             "mesh": (
                 f"{record.name}.ply",

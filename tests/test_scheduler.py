@@ -264,3 +264,43 @@ assert "torch" not in sys.modules, "the API process imported torch"
 """
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
+
+
+@pytest.mark.integration
+def test_concurrent_ticks_queue_each_tile_once_on_postgresql(tmp_path: Any) -> None:
+    """Several API processes tick at once: the conditional UPDATE admits exactly one of them."""
+    import threading
+
+    from tests.production_support import fresh_database, pg_reachable
+
+    if (why := pg_reachable()) is not None:
+        pytest.skip(why)
+    with fresh_database() as url:
+        settings = make_settings(tmp_path, database_url=url)
+        with api(settings) as client:
+            for seq in range(3):
+                upload(client, "veh-1/pg", seq, [10.0 + 20 * seq, 10.0 + 20 * seq, 0.0])
+            factory = session_factory(client.app)
+            with factory() as db:
+                last = max(t.last_upload_at for t in db.execute(select(Tile)).scalars())
+            now = last + timedelta(seconds=31)
+            reports: list[scheduler.TickReport] = []
+            barrier = threading.Barrier(4)
+
+            def tick_once() -> None:
+                barrier.wait()
+                with factory() as db:
+                    reports.append(scheduler.tick(db, now, settings))
+
+            threads = [threading.Thread(target=tick_once) for _ in range(4)]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join(60)
+            scheduled = sorted(t for r in reports for t in r.scheduled)
+            with factory() as db:
+                tiles = sorted((t.i, t.j) for t in db.execute(select(Tile)).scalars())
+                jobs = db.execute(select(FusionJob)).scalars().all()
+            assert scheduled == tiles  # every tile once, by exactly one ticker
+            assert sorted((j.tile_i, j.tile_j) for j in jobs) == tiles
+            client.app.state.engine.dispose()

@@ -96,7 +96,7 @@ def pack_border(border: dict[str, Any]) -> bytes:
         else:
             flat[side] = np.asarray(value)
     buffer = io.BytesIO()
-    np.savez(buffer, **flat)
+    np.savez(buffer, **flat)  # type: ignore[arg-type]
     return buffer.getvalue()
 
 
