@@ -7,6 +7,7 @@ Everything binds to 127.0.0.1 on free ports and is torn down by the fixtures tha
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import select
 import shutil
@@ -298,28 +299,173 @@ class FleetmapProcess:
 
 
 def start_api(
-    env: dict[str, str], logdir: Path, *, workers: int = 1, name: str = "api"
+    env: dict[str, str], logdir: Path, *, workers: int = 1, name: str = "api", port: int | None = None
 ) -> tuple[FleetmapProcess, str]:
-    """Start ``fleetmap serve`` on a free port and wait for /healthz; returns (process, base URL)."""
-    port = free_port()
-    proc = FleetmapProcess(
-        name, ["serve", "--host", "127.0.0.1", "--port", str(port), "--workers", str(workers)], env, logdir
-    ).start()
+    """Start ``fleetmap serve`` (on ``port`` or a free one) and wait for /healthz; returns (process, URL)."""
+    port = port or free_port()
+    args = ["serve", "--host", "127.0.0.1", "--port", str(port), "--workers", str(workers)]
+    proc = FleetmapProcess(name, args, env, logdir).start()
     base = f"http://127.0.0.1:{port}"
 
     def healthy() -> bool:
         if not proc.alive:
-            raise AssertionError(f"{name} exited:\n{proc.log_tail()}")
+            raise RuntimeError(f"{name} exited")
         return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
 
     try:
-        wait_until(healthy, 60, f"{name} /healthz")
+        wait_until(healthy, 90, f"{name} /healthz", interval_s=0.2)
     except AssertionError:
         proc.stop()
         raise AssertionError(f"{name} did not become healthy:\n{proc.log_tail()}") from None
     return proc, base
 
 
-def start_worker(env: dict[str, str], logdir: Path, name: str = "worker") -> FleetmapProcess:
-    """Start one ``fleetmap worker`` (concurrency 1) consuming the fusion queue."""
-    return FleetmapProcess(name, ["worker", "--concurrency", "1"], env, logdir).start()
+def start_worker(
+    env: dict[str, str], logdir: Path, name: str = "worker", **overrides: str
+) -> FleetmapProcess:
+    """Start one ``fleetmap worker`` (concurrency 1) on the deployment's queue; ``overrides`` are
+    extra environment variables for this worker only (e.g. ``FLEETMAP_FUSION_PRESET``)."""
+    worker_env = {**env, **overrides}
+    return FleetmapProcess(
+        name, ["worker", "--concurrency", "1", "--loglevel", "info"], worker_env, logdir
+    ).start()
+
+
+# --- a whole deployment -----------------------------------------------------------------------------
+
+
+class Deployment:
+    """One production-style deployment for a test: its own PostgreSQL database, Celery queue and blob
+    folder, ``fleetmap serve`` / ``fleetmap worker`` processes, and an operator token."""
+
+    def __init__(self, database_url: str, broker_url: str, workdir: Path, **settings: str) -> None:
+        self.database_url = database_url
+        self.broker_url = broker_url
+        self.workdir = workdir
+        self.queue = f"fleetmap-prod-test-{uuid.uuid4().hex[:10]}"
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")}
+        self.env.update(
+            FLEETMAP_DATABASE_URL=database_url,
+            FLEETMAP_BROKER_URL=broker_url,
+            FLEETMAP_FUSION_QUEUE=self.queue,
+            FLEETMAP_DATA_DIR=str(workdir / "data"),
+            FLEETMAP_BLOB_URL=f"file://{workdir / 'blobs'}",
+            FLEETMAP_AUTH="on",
+            FLEETMAP_FUSION_PRESET="tiny",
+            FLEETMAP_FUSE_DEBOUNCE_S="1",
+            FLEETMAP_SCHEDULER_INTERVAL_S="0.5",
+            FLEETMAP_LOG_LEVEL="INFO",
+        )
+        self.env.update({f"FLEETMAP_{k.upper()}": str(v) for k, v in settings.items()})
+        self.processes: list[FleetmapProcess] = []
+        self._engine: Any = None
+        self.token = ""
+
+    def migrate_and_token(self) -> None:
+        """Upgrade the schema and create an operator token (in-process, directly on the database)."""
+        from service.auth import create_token
+        from service.migrate import upgrade
+
+        upgrade(self.engine)
+        with self.session() as db:
+            _, self.token = create_token(db, "operator", "prod-test-operator")
+            db.commit()
+
+    @property
+    def engine(self) -> Any:
+        if self._engine is None:
+            from sqlalchemy import create_engine
+
+            self._engine = create_engine(self.database_url, pool_pre_ping=True)
+        return self._engine
+
+    def session(self) -> Any:
+        from sqlalchemy.orm import Session
+
+        return Session(self.engine, expire_on_commit=False)
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"}
+
+    def api(
+        self, *, port: int | None = None, name: str = "api", **overrides: str
+    ) -> tuple[FleetmapProcess, str]:
+        proc, base = start_api({**self.env, **overrides}, self.workdir, name=name, port=port)
+        self.processes.append(proc)
+        return proc, base
+
+    def worker(self, name: str = "worker", **overrides: str) -> FleetmapProcess:
+        proc = start_worker(self.env, self.workdir, name, **overrides)
+        self.processes.append(proc)
+        return proc
+
+    def logs(self) -> str:
+        return "\n".join(f"--- {p.name} ---\n{p.log_tail(3000)}" for p in self.processes)
+
+    def close(self) -> None:
+        for proc in self.processes:
+            proc.stop(grace_s=5)
+        if self._engine is not None:
+            self._engine.dispose()
+        with contextlib.suppress(Exception):
+            import redis
+
+            redis.Redis.from_url(self.broker_url, socket_timeout=2).delete(
+                self.queue, f"_kombu.binding.{self.queue}"
+            )
+
+
+@contextlib.contextmanager
+def deployment(tmp_path: Path, broker_url: str | None = None, **settings: str) -> Iterator[Deployment]:
+    """A migrated :class:`Deployment` on a fresh PostgreSQL database (skips if PostgreSQL is down)."""
+    reason = pg_reachable()
+    if reason is not None:
+        pytest.skip(reason)
+    with fresh_database() as url:
+        dep = Deployment(
+            url,
+            broker_url or os.environ.get("FLEETMAP_TEST_REDIS_URL", DEFAULT_REDIS_URL),
+            tmp_path,
+            **settings,
+        )
+        try:
+            dep.migrate_and_token()
+            yield dep
+        finally:
+            dep.close()
+
+
+# --- submaps ----------------------------------------------------------------------------------------
+
+IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
+
+
+def submap_meta(session: str, seq: int, t: list[float], agent: str | None = None) -> dict[str, Any]:
+    """Upload meta of submap ``seq`` of ``session`` at map-frame translation ``t`` (identity rotation)."""
+    return {
+        "agent_id": agent or session.split("/")[0],
+        "session_id": session,
+        "seq": seq,
+        "captured_at": "2026-11-24T08:00:00Z",
+        "gps": {"pose": {"t": t, "q": IDENTITY_Q}},
+        "gps_sigma": {"trans_m": 1.0, "rot_deg": 1.0},
+        "odometry": {"t": [float(seq), 0.0, 0.0], "q": IDENTITY_Q},
+    }
+
+
+def small_mesh(seed: int = 0) -> bytes:
+    """A small labelled street scene (16 m, local frame), made unique by ``seed`` (a sub-mm z shift)."""
+    from fusion.meshio import write_submap_ply
+    from tests.scene import street
+
+    mesh = street(16.0)
+    mesh.vertices = mesh.vertices + [0.0, 0.0, 1e-4 * seed]
+    return write_submap_ply(mesh)
+
+
+def post_submap(
+    client: httpx.Client, headers: dict[str, str], meta: dict[str, Any], mesh: bytes
+) -> httpx.Response:
+    files = {"meta": (None, json.dumps(meta), "application/json"), "mesh": ("submap.ply", mesh)}
+    return client.post("/v1/submaps", files=files, headers=headers)
