@@ -85,8 +85,12 @@ def cmd_fuse(args: argparse.Namespace) -> int:
 @_guard
 def cmd_bench(args: argparse.Namespace) -> int:
     """Simulate, fuse one tile, evaluate against the ground truth, print the table."""
+    from fusion.ablations import run_extras, wants_extras
     from fusion.bench import ROWS, run_bench
 
+    if wants_extras(args):  # --baseline / --ablation: fusion.ablations prints its own tables
+        run_extras(args)
+        return 0
     rows = args.rows.split(",") if args.rows else None
     unknown = [r for r in rows or [] if r not in ROWS]
     if unknown:
@@ -129,6 +133,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
     p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
     p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")
+    from fusion.ablations import add_bench_arguments
+
+    add_bench_arguments(p)  # --baseline, --ablation NAME|all, --plots DIR, Poisson sizes
     p.set_defaults(func=cmd_bench)
 
 
