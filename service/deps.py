@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterator
 from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 from service.auth import ANONYMOUS_OPERATOR, Principal, authenticate
@@ -14,6 +16,8 @@ from service.blobs import BlobStore
 from service.models import Role
 from service.problems import ProblemError
 from service.settings import Settings
+
+log = logging.getLogger(__name__)
 
 
 def get_settings_dep(request: Request) -> Settings:
@@ -26,7 +30,13 @@ def get_db(request: Request) -> Iterator[Session]:
     try:
         yield session
     finally:
-        session.close()
+        try:
+            session.close()
+        except DBAPIError as exc:
+            # The database went away after the response was built (its final ROLLBACK failed).
+            # The pool has dropped that connection; raising here would abort an already-sent
+            # response and the client's keep-alive connection with it.
+            log.warning("closing a database session failed (%s); the connection was discarded", exc.orig)
 
 
 def get_blobs(request: Request) -> BlobStore:
