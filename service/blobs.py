@@ -24,6 +24,10 @@ class BlobNotFoundError(KeyError):
     """No blob with that sha256."""
 
 
+class BlobStoreUnavailableError(OSError):
+    """The blob store cannot be reached or answered wrongly (the API answers 503)."""
+
+
 @runtime_checkable
 class BlobStore(Protocol):
     """What the service and workers need from blob storage."""

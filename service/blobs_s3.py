@@ -26,7 +26,7 @@ import boto3
 from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
 
-from service.blobs import BlobNotFoundError, sha256_bytes, sha256_file
+from service.blobs import BlobNotFoundError, BlobStoreUnavailableError, sha256_bytes, sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 _MAX_SINGLE_PUT = 256 * 1024 * 1024
 
 
-class BlobStoreError(OSError):
+class BlobStoreError(BlobStoreUnavailableError):
     """The object store failed or returned bytes that do not match their address (an I/O error)."""
 
 

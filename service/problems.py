@@ -17,9 +17,11 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fusion.errors import FusionLibraryError, MeshValidationError, PoseError
+from service.blobs import BlobStoreUnavailableError
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +161,16 @@ async def _handle_db_unavailable(_request: Request, exc: Exception) -> JSONRespo
     )
 
 
+async def _handle_blobs_unavailable(_request: Request, exc: Exception) -> JSONResponse:
+    log.error("blob store unavailable: %s", exc)
+    return problem_response(
+        503,
+        "the blob store is unavailable, retry later",
+        code="blob_store_unavailable",
+        headers={"Retry-After": "5"},
+    )
+
+
 async def _handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:
     log.error("unhandled error", exc_info=exc)
     return problem_response(500, "an unexpected error occurred; it has been logged", code="internal_error")
@@ -171,6 +183,8 @@ def install_problem_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _handle_validation)
     app.add_exception_handler(FusionLibraryError, _handle_fusion)
     app.add_exception_handler(OperationalError, _handle_db_unavailable)
+    app.add_exception_handler(PoolTimeoutError, _handle_db_unavailable)  # every pooled connection busy
+    app.add_exception_handler(BlobStoreUnavailableError, _handle_blobs_unavailable)
     app.add_exception_handler(Exception, _handle_unexpected)
 
 
