@@ -94,3 +94,49 @@ def test_ping(store: S3BlobStore, s3_endpoint: str) -> None:
     dead = S3BlobStore("s3://fleetmap-blobs", endpoint_url="http://127.0.0.1:9", connect_timeout_s=1)
     with pytest.raises(BlobStoreError):
         dead.ping()
+
+
+@pytest.mark.slow
+def test_ingest_fuse_download_with_s3_blobs(s3_endpoint: str, tmp_path: Path) -> None:
+    """The production path with every blob in S3: upload → `fleetmap worker` fuses → mesh download."""
+    import httpx
+
+    from tests.production_support import deployment, post_submap, small_mesh, submap_meta, wait_until
+
+    bucket_url = "s3://fleetmap-e2e/blobs"
+    store = S3BlobStore(bucket_url, endpoint_url=s3_endpoint)
+    store.ensure_bucket()
+    with deployment(tmp_path, blob_url=bucket_url, s3_endpoint_url=s3_endpoint) as dep:
+        try:
+            _, base = dep.api()
+            dep.worker()
+            with httpx.Client(base_url=base, timeout=30, headers=dep.headers) as client:
+                assert client.get("/readyz").json()["checks"]["blob_store"] == "ok"
+                meshes = [small_mesh(seq) for seq in range(2)]
+                for seq, mesh in enumerate(meshes):
+                    meta = submap_meta("veh-s3/e2e", seq, [20.0 + 4 * seq, 20.0, 0.0])
+                    response = post_submap(client, dep.headers, meta, mesh)
+                    assert response.status_code == 201, response.text
+                    assert store.get(response.json()["sha256"]) == mesh  # the upload landed in S3
+                assert (tmp_path / "blobs").exists() is False
+                accepted = client.post("/v1/tiles/0/0/fuse")
+                assert accepted.status_code == 202, accepted.text
+                job_id = accepted.json()["job_id"]
+                job = wait_until(
+                    lambda: (
+                        (body := client.get(f"/v1/jobs/{job_id}").json())["state"] in ("succeeded", "failed")
+                        and body
+                    ),
+                    240,
+                    "the fusion job",
+                    interval_s=0.5,
+                )
+                assert job["state"] == "succeeded", job
+                ply = client.get("/v1/tiles/0/0/mesh")
+                assert ply.status_code == 200 and ply.content.startswith(b"ply")
+                etag = ply.headers["etag"]
+                assert client.get("/v1/tiles/0/0/mesh", headers={"If-None-Match": etag}).status_code == 304
+                # The fused mesh came from the object store: its bytes are a stored blob.
+                assert store.exists(hashlib.sha256(ply.content).hexdigest())
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\n{dep.logs()}") from None
