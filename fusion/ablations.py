@@ -11,6 +11,7 @@ Row keys: ``geo_p/geo_r/geo_f`` (precision, recall, F at the bench's distance th
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -45,9 +46,19 @@ class Harness:
     field_mb_per_km: Callable[[Any, Any], float]
 
 
+def _emit(row: Row) -> Row:
+    """Prints a row as soon as it exists (a long study that fails late keeps what it measured)."""
+    print(
+        "  row: " + ", ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+        file=sys.stderr,
+        flush=True,
+    )
+    return row
+
+
 def _fused_row(h: Harness, scenario: Any, config: Any, **label: Any) -> Row:
     mesh, poses, seconds = h.fuse(scenario, config)
-    return {**label, **h.evaluate(scenario, mesh, poses), "time_s": seconds}
+    return _emit({**label, **h.evaluate(scenario, mesh, poses), "time_s": seconds})
 
 
 def _gps_poses(h: Harness, scenario: Any) -> dict[str, Pose]:
@@ -59,7 +70,7 @@ def baseline_vs_fusion(h: Harness, plots: Path | None = None, baseline_config: A
     from fusion.baseline import BaselineConfig, run_baseline
 
     scenario = h.simulate()
-    rows: list[Row] = []
+    rows: list[Row] = [_fused_row(h, scenario, h.base_config, method="fusion (hash)")]
     gps = _gps_poses(h, scenario)
     for method in ("gps", "icp", "gicp"):
         cfg = baseline_config or BaselineConfig()
@@ -67,8 +78,7 @@ def baseline_vs_fusion(h: Harness, plots: Path | None = None, baseline_config: A
         mesh, poses, timing = run_baseline(h.submaps(scenario), h.tile(scenario), method=method, config=cfg)
         seconds = time.perf_counter() - t0
         scores = h.evaluate(scenario, mesh, {**gps, **poses})
-        rows.append({"method": f"poisson+{method}", **scores, "time_s": seconds})
-    rows.append(_fused_row(h, scenario, h.base_config, method="fusion (hash)"))
+        rows.append(_emit({"method": f"poisson+{method}", **scores, "time_s": seconds}))
     if plots is not None:
         _bars(rows, "method", ["geo_f", "sem_f", "trans_m"], plots / "baseline.png", "baseline vs fusion")
     return rows
