@@ -8,6 +8,10 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
 - Pose learning rates are 3e-2 m and 1e-3 rad per step (paper: 1e-2 / 1e-4): with a few hundred
   decaying Adam steps, 1e-4 rad/step cannot undo a 1.5° GPS heading error nor 1e-2 m/step a 3 m
   (2σ) GPS offset. Tune per deployment.
+- ``lambda_odom`` is 0.01 (residuals are in units of the odometry σ, so 1 made each session's chain
+  too stiff for the field to align it); instead each session's chain is initialised by placing its
+  odometry on the GPS poses (``odom_init``, rotation/translation averaging), which removed most of
+  the GPS error on the synthetic bench.
 - Confidence targets of surface samples are the cross-session consensus (fraction of the sessions
   covering a point that also observed a surface there) instead of a constant 1, so objects seen by one
   session of many fall below ``c_th`` independent of the grid resolution (``consensus_*``).
@@ -42,7 +46,7 @@ class FusionConfig:
     lambda_sem: float = 1.0
     lambda_eik: float = 0.1
     lambda_conf: float = 1.0
-    lambda_odom: float = 1.0
+    lambda_odom: float = 0.01  # odometry residuals are in σ units; 1 made chains too stiff to align (bench)
     lambda_gps: float = 1e-2
     sigma_s: float = 0.05  # metres, std of the surface-sample offset along the normal
     # optimiser
@@ -52,6 +56,7 @@ class FusionConfig:
     weight_decay: float = 1e-2
     lr_decay_final: float = 0.1  # exponential decay: lr(end) = lr · lr_decay_final
     iterations: int = 300
+    odom_init: bool = True  # start from each session's odometry chain rigidly fitted to its GPS poses
     pose_warmup: int = 10  # iterations with frozen poses so the field first takes a rough shape
     surface_samples: int = 4096
     space_samples: int = 4096
@@ -63,7 +68,8 @@ class FusionConfig:
     # confidence
     c_th: float = 0.7
     consensus: bool = True
-    consensus_radius_m: float = 0.5
+    consensus_radius_m: float = 0.5  # a session "saw" a surface point if it has one within this
+    consensus_cover_m: float = 2.5  # ... and "saw its neighbourhood" if it has one within this
     consensus_at: tuple[float, ...] = (0.4, 0.7)  # fractions of training at which targets are recomputed
     pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
     # tile geometry and extraction
@@ -72,6 +78,7 @@ class FusionConfig:
     slab_max_m: float = 40.0
     extract_voxel_m: float = 0.25
     extract_block: int = 4  # coarse narrow-band block, in voxels
+    extract_band: float = 0.75  # refine blocks with a corner |s| below this × block diagonal (or a sign change)
     extract_chunk: int = 65536
     # run
     seed: int = 0

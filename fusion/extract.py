@@ -54,7 +54,7 @@ def _eval(fn: SdfFn, k: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 def narrow_band_sdf(
-    sdf_fn: SdfFn, lat: Lattice, block: int, band_factor: float = 1.5, step: StepFn | None = None
+    sdf_fn: SdfFn, lat: Lattice, block: int, band_factor: float = 0.75, step: StepFn | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """SDF volume (nx, ny, nz) float64 on the lattice and the mask of exactly evaluated points."""
     b, v = block, lat.voxel_m
@@ -165,6 +165,7 @@ def extract_mesh(
     z_range: tuple[float, float],
     voxel_m: float,
     block: int = 4,
+    band_factor: float = 0.75,
     c_th: float = 0.7,
     border_pins: Any = None,
     step: StepFn | None = None,
@@ -175,7 +176,7 @@ def extract_mesh(
     border planes (after pinning) and stats. Face normals (right-hand winding) point to free space.
     """
     lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)
-    vol, mask = narrow_band_sdf(sdf_fn, lat, block, step=step)
+    vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step)
     pinned = apply_border_pins(vol, lat, border_pins) if border_pins else 0
     border = border_planes(vol, lat)
     stats: dict[str, Any] = {"lattice_shape": list(lat.shape), "band_points": int(mask.sum()), "pinned": pinned}

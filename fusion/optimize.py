@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fusion import se3
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
 from fusion.extract import extract_mesh
@@ -104,7 +103,7 @@ def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConf
     pts, nrm, lab, own = pts[keep], nrm[keep], lab[keep], own[keep]
 
     centroids_local = [sm.mesh.vertices.mean(0) for sm in chosen]
-    start = odometry_consistent_start(chosen, init, centroids_local)
+    start = odometry_consistent_start(chosen, init, centroids_local) if config.odom_init else init
     centroids = np.stack([s[:3, :3] @ c + s[:3, 3] for s, c in zip(start, centroids_local, strict=True)])
     blo, bhi = space_boxes(chosen, height_m=4.0, margin_m=1.0)
     lo = torch.tensor([xy_lo[0], xy_lo[1], z_lo], dtype=torch.float32, device=dev)
@@ -127,16 +126,14 @@ def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConf
                        torch.tensor(np.stack(init), dtype=torch.float64, device=dev))
 
 
-def update_consensus(problem: TileProblem, radius_m: float) -> float:
+def update_consensus(problem: TileProblem, config: FusionConfig) -> float:
     """Recompute the confidence targets of the surface pool from the current poses; returns their mean."""
     with torch.no_grad():
         poses = problem.poses()
         pool_tile = (poses[problem.pool.submap][:, :3, :3].float() @ problem.pool.points[:, :, None])[:, :, 0]
         pool_tile = pool_tile + poses[problem.pool.submap][:, :3, 3].float()
-        local_from_tile = se3.inverse(poses).cpu().numpy()
     target = consensus_targets(
-        pool_tile.cpu().numpy(), problem.pool_session, problem.submap_session, local_from_tile,
-        problem.box_lo_np, problem.box_hi_np, radius_m,
+        pool_tile.cpu().numpy(), problem.pool_session, config.consensus_radius_m, config.consensus_cover_m
     )
     problem.pool.conf_target = torch.from_numpy(target).to(problem.pool.points.device)
     return float(target.mean())
@@ -188,7 +185,7 @@ def fuse_tile(
     t_train = time.perf_counter()
     for it in range(config.iterations):
         if it in consensus_iters:
-            update_consensus(problem, config.consensus_radius_m)
+            update_consensus(problem, config)
         field.set_active_levels(active_levels(it, config))
         poses64 = problem.poses()
         batch = sample_batch(problem.pool, problem.boxes, poses64.float(), problem.lo, problem.hi,
@@ -221,6 +218,7 @@ def fuse_tile(
         (float(problem.lo[2]) + problem.origin[2], float(problem.hi[2]) + problem.origin[2]),
         config.extract_voxel_m,
         config.extract_block,
+        config.extract_band,
         config.c_th,
         border_pins,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,

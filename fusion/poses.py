@@ -66,46 +66,40 @@ def odometry_pairs(submaps: list[SubmapInput]) -> tuple[Tensor, Tensor, Tensor, 
             torch.tensor(ist, dtype=torch.float64), torch.tensor(isr, dtype=torch.float64))
 
 
-def _rigid_fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted least-squares rigid transform (4, 4) with ``dst ≈ R src + t`` (Kabsch)."""
-    w = w / w.sum()
-    ms, md = (w[:, None] * src).sum(0), (w[:, None] * dst).sum(0)
-    h = ((src - ms) * w[:, None]).T @ (dst - md)
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = r, md - r @ ms
-    return out
-
-
 def odometry_consistent_start(
-    submaps: list[SubmapInput], init: list[np.ndarray], centroids_local: list[np.ndarray], arm_m: float = 10.0
+    submaps: list[SubmapInput], init: list[np.ndarray], centroids_local: list[np.ndarray]
 ) -> list[np.ndarray]:
-    """Starting poses (4, 4) per submap: each session's odometry chain rigidly fitted to its GPS poses.
+    """Starting poses (4, 4) per submap: each session's odometry chain placed by its GPS poses.
 
-    With accurate odometry this averages the independent GPS errors of a session's submaps (the
-    classic GPS + odometry fusion); a 4-point "tripod" per submap (centroid and three arms of
-    ``arm_m``) carries the GPS heading so straight drives stay well posed. Fixed submaps dominate the
-    fit of their session and keep their pose. Sessions with one submap keep their initial pose.
+    The odometry → map transform ``G`` of a session takes its rotation from the chordal mean of the
+    per-submap estimates ``R_gps · R_odomᵀ`` and its translation from the mean centroid offset, each
+    weighted by 1/σ² (fixed submaps dominate, so they keep their pose). With accurate odometry this
+    averages the independent GPS errors of a session's submaps. Sessions with one submap keep theirs.
     """
     out = [m.copy() for m in init]
     by_session: dict[str, list[int]] = {}
     for k, sm in enumerate(submaps):
         by_session.setdefault(sm.session_id, []).append(k)
-    tripod = np.vstack([np.zeros(3), np.eye(3) * arm_m])  # (4, 3)
     for members in by_session.values():
         if len(members) < 2 or not any(submaps[k].free for k in members):
             continue
-        src, dst, w = [], [], []
+        acc_r, acc_t, acc_w = np.zeros((3, 3)), np.zeros(3), 0.0
+        odo = {k: submaps[k].odometry.matrix() for k in members}
+        wr = {k: (1.0 if submaps[k].free else 1e6) / max(math.radians(submaps[k].gps_sigma.rot_deg), 1e-6) ** 2
+              for k in members}
         for k in members:
-            pts = centroids_local[k] + tripod  # local frame
-            o = submaps[k].odometry.matrix()
-            src.append(pts @ o[:3, :3].T + o[:3, 3])
-            dst.append(pts @ init[k][:3, :3].T + init[k][:3, 3])
-            w.append(np.full(4, 1.0 if submaps[k].free else 1e3))
-        g = _rigid_fit(np.vstack(src), np.vstack(dst), np.concatenate(w))
+            acc_r += wr[k] * init[k][:3, :3] @ odo[k][:3, :3].T
+        u, _, vt = np.linalg.svd(acc_r)
+        rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+        for k in members:
+            w = (1.0 if submaps[k].free else 1e6) / max(submaps[k].gps_sigma.trans_m, 1e-6) ** 2
+            c_gps = init[k][:3, :3] @ centroids_local[k] + init[k][:3, 3]
+            c_odo = odo[k][:3, :3] @ centroids_local[k] + odo[k][:3, 3]
+            acc_t += w * (c_gps - rot @ c_odo)
+            acc_w += w
+        g = np.eye(4)
+        g[:3, :3], g[:3, 3] = rot, acc_t / acc_w
         for k in members:
             if submaps[k].free:
-                out[k] = g @ submaps[k].odometry.matrix()
+                out[k] = g @ odo[k]
     return out

@@ -145,7 +145,9 @@ def sample_batch(
     sm = pool.submap[idx]
     p = transform(poses, sm, pool.points[idx])
     rot = poses[sm][:, :3, :3]
-    nrm = (rot @ pool.normals[idx][:, :, None])[:, :, 0]
+    # target normals follow the pose but carry no gradient: early, untrained field normals would
+    # otherwise drag the rotations along
+    nrm = (rot.detach() @ pool.normals[idx][:, :, None])[:, :, 0]
     s_hat = (torch.randn(n_surf, generator=gen, device="cpu") * sigma_s).to(dev)
     x = p + s_hat[:, None] * nrm
 
@@ -160,29 +162,18 @@ def sample_batch(
 
 
 def consensus_targets(
-    pool_tile: np.ndarray,
-    pool_session: np.ndarray,
-    submap_session: np.ndarray,
-    local_from_tile: np.ndarray,
-    box_lo: np.ndarray,
-    box_hi: np.ndarray,
-    radius_m: float,
+    pool_tile: np.ndarray, pool_session: np.ndarray, near_m: float, cover_m: float
 ) -> np.ndarray:
-    """Confidence target per pool point: (#sessions with a surface within ``radius_m``) / (#sessions
-    whose submap boxes cover the point). A surface that most passing sessions saw gets ≈ 1; an object
-    seen by one session of five gets ≈ 0.2. Points: (P, 3) tile frame; ``local_from_tile`` (M, 4, 4)."""
-    sessions = np.unique(submap_session)
+    """Confidence target per pool point (P, 3) (tile frame): the fraction of the sessions that observed
+    the neighbourhood (a surface point within ``cover_m``) which also observed this surface (a point
+    within ``near_m``). The road under a parked car that one session of five saw keeps ≈ 0.8, the car
+    itself gets ≈ 0.2; a facade that only the sessions on its street could see keeps 1, because the
+    others observed nothing within ``cover_m`` of it."""
     near = np.zeros(len(pool_tile), np.int32)
     cover = np.zeros(len(pool_tile), np.int32)
-    for s in sessions:
-        mine = pool_session == s
-        tree = cKDTree(pool_tile[mine])
-        d, _ = tree.query(pool_tile, k=1, distance_upper_bound=radius_m, workers=-1)
-        is_near = np.isfinite(d)
-        covered = np.zeros(len(pool_tile), bool)
-        for m in np.flatnonzero(submap_session == s):
-            loc = pool_tile @ local_from_tile[m, :3, :3].T + local_from_tile[m, :3, 3]
-            covered |= np.all((loc >= box_lo[m]) & (loc <= box_hi[m]), axis=1)
-        near += is_near
-        cover += covered | is_near
+    for s in np.unique(pool_session):
+        tree = cKDTree(pool_tile[pool_session == s])
+        d, _ = tree.query(pool_tile, k=1, distance_upper_bound=cover_m, workers=-1)
+        near += d <= near_m
+        cover += np.isfinite(d)
     return (near / np.maximum(cover, 1)).astype(np.float32)
