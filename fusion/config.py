@@ -13,7 +13,7 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
   odometry on the GPS poses (``odom_init``, rotation/translation averaging), which removed most of
   the GPS error on the synthetic bench.
 - Confidence targets of surface samples are the cross-session consensus (fraction of the sessions
-  covering a point that also observed a surface there) instead of a constant 1, so objects seen by one
+  that observed a point's neighbourhood which also saw a surface there) instead of a constant 1, so objects seen by one
   session of many fall below ``c_th`` independent of the grid resolution (``consensus_*``).
 """
 
