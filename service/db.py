@@ -7,12 +7,13 @@ scheduler and the embedded worker can share one file.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy import Engine, create_engine, event, exc, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -35,7 +36,10 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
 def postgres_engine_options(settings: Settings | None = None, url_options: str = "") -> dict[str, Any]:
     """Production pool and connection options for PostgreSQL (psycopg 3).
 
-    Pre-ping drops connections a server restart killed; connect/pool timeouts turn an outage into
+    Liveness: a connection that sat idle in the pool for ``db_ping_idle_s`` is pinged on checkout
+    (see :func:`_install_idle_ping`) and replaced if dead; a busy pool skips that round trip. A
+    connection that dies in use raises a disconnect error, which invalidates the whole pool (every
+    older connection is replaced on its next checkout). Connect/pool timeouts turn an outage into
     fast errors (503) instead of hung requests; TCP keepalives and ``tcp_user_timeout`` detect a
     silently dead peer; ``statement_timeout`` bounds every statement server-side. ``url_options``
     (the URL's own ``options=`` query, e.g. a search_path) is kept.
@@ -55,13 +59,41 @@ def postgres_engine_options(settings: Settings | None = None, url_options: str =
     if options:
         connect_args["options"] = options
     return {
-        "pool_pre_ping": True,
+        "pool_pre_ping": s.db_ping_idle_s <= 0,
         "pool_size": s.db_pool_size,
         "max_overflow": s.db_max_overflow,
         "pool_timeout": s.db_pool_timeout_s,
         "pool_recycle": s.db_pool_recycle_s,
         "connect_args": connect_args,
     }
+
+
+_CHECKIN_AT = "fleetmap_checkin_at"
+
+
+def _install_idle_ping(engine: Engine, idle_s: float) -> None:
+    """Pre-ping only connections that were idle in the pool for ``idle_s`` seconds or more.
+
+    A ping per checkout was a round trip on every request; under load connections come back within
+    milliseconds and a dead one is noticed by its first statement anyway. Raising
+    ``DisconnectionError`` from the checkout event makes the pool discard the connection and check
+    out (or open) another.
+    """
+
+    @event.listens_for(engine, "checkin")
+    def _checkin(_dbapi_connection: Any, record: Any) -> None:
+        record.info[_CHECKIN_AT] = time.monotonic()
+
+    @event.listens_for(engine, "checkout")
+    def _checkout(dbapi_connection: Any, record: Any, _proxy: Any) -> None:
+        since = record.info.get(_CHECKIN_AT)
+        if since is None or time.monotonic() - since < idle_s:
+            return  # just opened, or recently in use
+        try:
+            engine.dialect.do_ping(dbapi_connection)
+        except Exception as err:
+            record.info.pop(_CHECKIN_AT, None)
+            raise exc.DisconnectionError(f"pooled connection failed its ping: {err}") from err
 
 
 def make_engine(url: str, settings: Settings | None = None) -> Engine:
@@ -81,6 +113,8 @@ def make_engine(url: str, settings: Settings | None = None) -> Engine:
     engine = create_engine(url, **kwargs)
     if parsed.get_backend_name() == "sqlite":
         event.listen(engine, "connect", _sqlite_pragmas)
+    elif not kwargs.get("pool_pre_ping"):
+        _install_idle_ping(engine, (settings or Settings()).db_ping_idle_s)
     return engine
 
 

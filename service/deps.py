@@ -1,4 +1,9 @@
-"""FastAPI dependencies, declared once as ``Annotated`` types (settings, DB session, blobs, caller)."""
+"""FastAPI dependencies, declared once as ``Annotated`` types (settings, DB session, blobs, caller).
+
+The cheap ones are ``async def``: FastAPI runs a plain ``def`` dependency in the threadpool, and a
+hop per dependency was a measurable part of every request. The caller's token is looked up in the
+process's token cache first (see :mod:`service.auth`) and only on a miss in the database (one hop).
+"""
 
 from __future__ import annotations
 
@@ -7,11 +12,12 @@ from collections.abc import Callable, Iterator
 from typing import Annotated
 
 from fastapi import Depends, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
-from service.auth import ANONYMOUS_OPERATOR, Principal, authenticate
+from service.auth import ANONYMOUS_OPERATOR, Principal, TokenCache, authenticate, hash_token
 from service.blobs import BlobStore
 from service.models import Role
 from service.problems import ProblemError
@@ -20,7 +26,7 @@ from service.settings import Settings
 log = logging.getLogger(__name__)
 
 
-def get_settings_dep(request: Request) -> Settings:
+async def get_settings_dep(request: Request) -> Settings:
     return request.app.state.settings  # type: ignore[no-any-return]
 
 
@@ -39,7 +45,7 @@ def get_db(request: Request) -> Iterator[Session]:
             log.warning("closing a database session failed (%s); the connection was discarded", exc.orig)
 
 
-def get_blobs(request: Request) -> BlobStore:
+async def get_blobs(request: Request) -> BlobStore:
     return request.app.state.blobs  # type: ignore[no-any-return]
 
 
@@ -53,9 +59,21 @@ _bearer = HTTPBearer(
 _CHALLENGE = {"WWW-Authenticate": "Bearer"}
 
 
-def get_principal(
+def _token_cache(request: Request, settings: Settings) -> TokenCache:
+    cache: TokenCache | None = getattr(request.app.state, "token_cache", None)
+    if cache is None:
+        cache = request.app.state.token_cache = TokenCache(settings.auth_cache_s)
+    return cache
+
+
+def _lookup_token(request: Request, secret: str, cache: TokenCache) -> Principal | None:
+    with request.app.state.session_factory() as db:
+        return authenticate(db, secret, cache)
+
+
+async def get_principal(
+    request: Request,
     settings: SettingsDep,
-    db: SessionDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Principal:
     """The caller; 401 without a valid token (any operator when ``FLEETMAP_AUTH=off``)."""
@@ -63,7 +81,10 @@ def get_principal(
         return ANONYMOUS_OPERATOR
     if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
         raise ProblemError(401, "a bearer token is required", code="unauthenticated", headers=_CHALLENGE)
-    principal = authenticate(db, credentials.credentials)
+    cache = _token_cache(request, settings)
+    principal = cache.get(hash_token(credentials.credentials))
+    if principal is None:
+        principal = await run_in_threadpool(_lookup_token, request, credentials.credentials, cache)
     if principal is None:
         raise ProblemError(
             401,
@@ -77,7 +98,7 @@ def get_principal(
 def require_roles(*roles: Role) -> Callable[[Principal], Principal]:
     """A dependency admitting only ``roles`` (403 otherwise)."""
 
-    def check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:
+    async def check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:
         if principal.role not in roles:
             allowed = ", ".join(r.value for r in roles)
             raise ProblemError(

@@ -3,6 +3,11 @@
 Order matters for durability and for "a rejected upload leaves nothing behind": everything is
 validated first, then the blob is written and fsynced, then one transaction inserts the session,
 the submap, its tile memberships and bumps the tiles' dirty generation.
+
+Cost per upload on PostgreSQL: one transaction of three round trips (BEGIN + a pre-check SELECT, one
+data-modifying CTE statement, COMMIT); the blob is written and fsynced between the pre-check and the
+CTE, while the transaction holds no lock. The response is built from the prepared upload (no
+re-read). Other backends (SQLite) take the portable path with the same semantics.
 """
 
 from __future__ import annotations
@@ -15,9 +20,9 @@ from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
-from sqlalchemy import case, func, literal, select, tuple_, update
+from sqlalchemy import bindparam, case, func, literal, select, text, tuple_, update
 from sqlalchemy.dialects import postgresql, sqlite
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlalchemy.orm import Session
 
 from fusion.geo import geodetic_to_map, parse_origin
@@ -26,7 +31,16 @@ from fusion.meshio import MeshLimits, read_submap_ply
 from fusion.tiles import home_tile, submap_tiles
 from fusion.types import Pose, Sigma
 from service.blobs import BlobStore
-from service.models import DrivingSession, Submap, SubmapTile, Tile, TileState, UTCDateTime, utcnow
+from service.models import (
+    DrivingSession,
+    Submap,
+    SubmapTile,
+    Tile,
+    TileState,
+    UTCDateTime,
+    new_id,
+    utcnow,
+)
 from service.problems import ProblemError
 from service.schemas import GpsPose, SubmapCreated, SubmapMeta
 from service.settings import Settings
@@ -126,30 +140,57 @@ def submap_tile_list(db: Session, submap_id: str) -> list[list[int]]:
     return [[i, j] for i, j in rows]
 
 
-def _created_body(db: Session, submap: Submap) -> SubmapCreated:
+def _created_body(prepared: PreparedSubmap, submap_id: str) -> SubmapCreated:
     return SubmapCreated(
-        id=submap.id,
-        session_id=submap.session_id,
-        seq=submap.seq,
-        tiles=submap_tile_list(db, submap.id),
-        sha256=submap.mesh_sha256,
+        id=submap_id,
+        session_id=prepared.meta.session_id,
+        seq=prepared.meta.seq,
+        tiles=[[i, j] for i, j in prepared.tiles],
+        sha256=prepared.mesh_sha256,
     )
 
 
-def _existing(db: Session, prepared: PreparedSubmap) -> SubmapCreated | None:
-    """The stored body for an identical retry, None if absent; 409 if the content differs."""
-    row = db.scalar(
-        select(Submap).where(Submap.session_id == prepared.meta.session_id, Submap.seq == prepared.meta.seq)
-    )
-    if row is None:
-        return None
-    if row.content_sha256 != prepared.content_sha256:
-        raise ProblemError(
-            409,
-            f"submap seq {row.seq} of session {row.session_id!r} is already stored with different content",
-            code="submap_conflict",
+# Session owner and the stored (session_id, seq) row, if any, in one round trip (every backend).
+_PRECHECK = text(
+    """
+    SELECT s.agent_id, m.id, m.content_sha256, m.mesh_sha256
+    FROM (SELECT :sid AS sid) AS k
+    LEFT JOIN sessions AS s ON s.session_id = k.sid
+    LEFT JOIN submaps AS m ON m.session_id = k.sid AND m.seq = :seq
+    """
+)
+
+
+def _precheck(db: Session, prepared: PreparedSubmap) -> SubmapCreated | None:
+    """The stored body for an identical retry, None if new; 409 if the content or the session's
+    agent differs (a session belongs to one agent)."""
+    meta = prepared.meta
+    owner, submap_id, content_sha, mesh_sha = db.execute(
+        _PRECHECK, {"sid": meta.session_id, "seq": meta.seq}
+    ).one()
+    if submap_id is not None:
+        if content_sha != prepared.content_sha256:
+            raise ProblemError(
+                409,
+                f"submap seq {meta.seq} of session {meta.session_id!r} is already stored with different content",
+                code="submap_conflict",
+            )
+        return SubmapCreated(
+            id=submap_id,
+            session_id=meta.session_id,
+            seq=meta.seq,
+            tiles=submap_tile_list(db, submap_id),
+            sha256=mesh_sha,
         )
-    return _created_body(db, row)
+    _raise_if_other_owner(owner, meta)
+    return None
+
+
+def _raise_if_other_owner(owner: str | None, meta: SubmapMeta) -> None:
+    if owner is not None and owner != meta.agent_id:
+        raise ProblemError(
+            409, f"session {meta.session_id!r} belongs to agent {owner!r}", code="session_agent_mismatch"
+        )
 
 
 def _insert_ignore(db: Session, table: type, rows: list[dict[str, Any]]) -> None:
@@ -160,15 +201,6 @@ def _insert_ignore(db: Session, table: type, rows: list[dict[str, Any]]) -> None
     """
     module = postgresql if db.get_bind().dialect.name == "postgresql" else sqlite
     db.connection().execute(module.insert(table.__table__).on_conflict_do_nothing(), rows)  # type: ignore[attr-defined]
-
-
-def _check_session_owner(db: Session, meta: SubmapMeta) -> None:
-    """409 if the session exists under another agent (a session belongs to one agent)."""
-    owner = db.scalar(select(DrivingSession.agent_id).where(DrivingSession.session_id == meta.session_id))
-    if owner is not None and owner != meta.agent_id:
-        raise ProblemError(
-            409, f"session {meta.session_id!r} belongs to agent {owner!r}", code="session_agent_mismatch"
-        )
 
 
 def mark_tiles_dirty(db: Session, tiles: list[tuple[int, int]], now: datetime) -> None:
@@ -196,67 +228,163 @@ def mark_tiles_dirty(db: Session, tiles: list[tuple[int, int]], now: datetime) -
     )
 
 
-def _insert(db: Session, prepared: PreparedSubmap, now: datetime) -> Submap:
+def _submap_row(prepared: PreparedSubmap, submap_id: str, now: datetime) -> dict[str, Any]:
+    meta = prepared.meta
+    return {
+        "id": submap_id,
+        "session_id": meta.session_id,
+        "seq": meta.seq,
+        "agent_id": meta.agent_id,
+        "captured_at": meta.captured_at,
+        "meta": prepared.meta_json,
+        "content_sha256": prepared.content_sha256,
+        "mesh_sha256": prepared.mesh_sha256,
+        "mesh_bytes": len(prepared.mesh_data),
+        "face_count": prepared.face_count,
+        "bbox_min": prepared.bbox_min,
+        "bbox_max": prepared.bbox_max,
+        "pose_gps": prepared.pose_gps.to_json(),
+        "gps_sigma_trans_m": meta.gps_sigma.trans_m,
+        "gps_sigma_rot_deg": meta.gps_sigma.rot_deg,
+        "odometry": meta.odometry.model_dump(),
+        "odometry_sigma_trans_m": meta.odometry_sigma.trans_m,
+        "odometry_sigma_rot_deg": meta.odometry_sigma.rot_deg,
+        "home_i": prepared.home[0],
+        "home_j": prepared.home[1],
+        "created_at": now,
+    }
+
+
+def _insert_portable(db: Session, prepared: PreparedSubmap, submap_id: str, now: datetime) -> None:
+    """Session, submap, memberships and tile bump with portable statements (SQLite)."""
     meta = prepared.meta
     _insert_ignore(
         db, DrivingSession, [{"session_id": meta.session_id, "agent_id": meta.agent_id, "created_at": now}]
     )
-    _check_session_owner(db, meta)
-    submap = Submap(
-        session_id=meta.session_id,
-        seq=meta.seq,
-        agent_id=meta.agent_id,
-        captured_at=meta.captured_at,
-        meta=prepared.meta_json,
-        content_sha256=prepared.content_sha256,
-        mesh_sha256=prepared.mesh_sha256,
-        mesh_bytes=len(prepared.mesh_data),
-        face_count=prepared.face_count,
-        bbox_min=prepared.bbox_min,
-        bbox_max=prepared.bbox_max,
-        pose_gps=prepared.pose_gps.to_json(),
-        gps_sigma_trans_m=meta.gps_sigma.trans_m,
-        gps_sigma_rot_deg=meta.gps_sigma.rot_deg,
-        odometry=meta.odometry.model_dump(),
-        odometry_sigma_trans_m=meta.odometry_sigma.trans_m,
-        odometry_sigma_rot_deg=meta.odometry_sigma.rot_deg,
-        home_i=prepared.home[0],
-        home_j=prepared.home[1],
-        created_at=now,
-    )
-    db.add(submap)
-    db.flush()
-    db.add_all(SubmapTile(submap_id=submap.id, i=i, j=j) for i, j in prepared.tiles)
+    owner = db.scalar(select(DrivingSession.agent_id).where(DrivingSession.session_id == meta.session_id))
+    _raise_if_other_owner(owner, meta)
+    db.execute(Submap.__table__.insert(), [_submap_row(prepared, submap_id, now)])
+    if prepared.tiles:
+        db.execute(
+            SubmapTile.__table__.insert(),
+            [{"submap_id": submap_id, "i": i, "j": j} for i, j in prepared.tiles],
+        )
     mark_tiles_dirty(db, prepared.tiles, now)
-    db.flush()
-    return submap
+
+
+_JSON_COLUMNS = ("meta", "bbox_min", "bbox_max", "pose_gps", "odometry")
+
+# PostgreSQL: the whole insert in one statement. ``s`` inserts the session or, only when it belongs
+# to another agent, returns that owner (DO UPDATE … WHERE sees the latest committed row, so a racing
+# session creator is caught); ``m`` inserts the submap unless the owner differs or (session_id, seq)
+# already exists; memberships and the tile upsert (one row per tile, in (i, j) order so concurrent
+# uploads lock tiles in the same order) follow only when ``m`` inserted. Queued/fusing tiles keep
+# their state (the job runner compares generations afterwards).
+_PG_INSERT = text(
+    """
+    WITH s AS (
+        INSERT INTO sessions (session_id, agent_id, created_at) VALUES (:session_id, :agent_id, :created_at)
+        ON CONFLICT (session_id) DO UPDATE SET agent_id = sessions.agent_id
+        WHERE sessions.agent_id <> EXCLUDED.agent_id
+        RETURNING agent_id
+    ), m AS (
+        INSERT INTO submaps (
+            id, session_id, seq, agent_id, captured_at, meta, content_sha256, mesh_sha256, mesh_bytes,
+            face_count, bbox_min, bbox_max, pose_gps, gps_sigma_trans_m, gps_sigma_rot_deg, odometry,
+            odometry_sigma_trans_m, odometry_sigma_rot_deg, home_i, home_j, created_at
+        )
+        SELECT :id, :session_id, :seq, :agent_id, :captured_at, CAST(:meta AS JSON), :content_sha256,
+            :mesh_sha256, :mesh_bytes, :face_count, CAST(:bbox_min AS JSON), CAST(:bbox_max AS JSON),
+            CAST(:pose_gps AS JSON), :gps_sigma_trans_m, :gps_sigma_rot_deg, CAST(:odometry AS JSON),
+            :odometry_sigma_trans_m, :odometry_sigma_rot_deg, :home_i, :home_j, :created_at
+        WHERE NOT EXISTS (SELECT 1 FROM s WHERE s.agent_id <> :agent_id)
+        ON CONFLICT (session_id, seq) DO NOTHING
+        RETURNING id
+    ), t AS (
+        SELECT u.i, u.j FROM unnest(CAST(:tile_i AS INTEGER[]), CAST(:tile_j AS INTEGER[])) AS u(i, j)
+    ), st AS (
+        INSERT INTO submap_tiles (submap_id, i, j) SELECT m.id, t.i, t.j FROM m CROSS JOIN t
+    ), tu AS (
+        INSERT INTO tiles (
+            i, j, state, version, dirty_generation, fused_generation, dirty_since, last_upload_at,
+            progress, updated_at
+        )
+        SELECT t.i, t.j, 'dirty', 0, 1, 0, :created_at, :created_at, 0.0, :created_at
+        FROM m CROSS JOIN t ORDER BY t.i, t.j
+        ON CONFLICT (i, j) DO UPDATE SET
+            dirty_generation = tiles.dirty_generation + 1,
+            dirty_since = COALESCE(tiles.dirty_since, EXCLUDED.dirty_since),
+            last_upload_at = EXCLUDED.last_upload_at,
+            state = CASE WHEN tiles.state IN ('queued', 'fusing') THEN tiles.state ELSE 'dirty' END,
+            updated_at = EXCLUDED.updated_at
+    )
+    SELECT (SELECT id FROM m) AS id, (SELECT agent_id FROM s) AS owner
+    """
+).bindparams(
+    bindparam("captured_at", type_=UTCDateTime()),
+    bindparam("created_at", type_=UTCDateTime()),
+)
+
+
+def _insert_postgres(db: Session, prepared: PreparedSubmap, submap_id: str, now: datetime) -> bool:
+    """One statement; False when (session_id, seq) appeared meanwhile (a racing upload)."""
+    row = _submap_row(prepared, submap_id, now)
+    for key in _JSON_COLUMNS:
+        row[key] = json.dumps(row[key])
+    row["tile_i"] = [i for i, _ in prepared.tiles]
+    row["tile_j"] = [j for _, j in prepared.tiles]
+    inserted, owner = db.execute(_PG_INSERT, row).one()
+    _raise_if_other_owner(owner, prepared.meta)
+    return inserted is not None
+
+
+def _store_once(db: Session, blobs: BlobStore, prepared: PreparedSubmap) -> tuple[SubmapCreated, bool]:
+    existing = _precheck(db, prepared)
+    if existing is not None:
+        return existing, False
+    # No lock is held yet (READ COMMITTED reads): other uploads proceed during the write and fsync.
+    blobs.put(prepared.mesh_data)  # durable before the row that names it commits
+    postgres = db.get_bind().dialect.name == "postgresql"
+    for attempt in range(_INSERT_ATTEMPTS):
+        submap_id = new_id()
+        try:
+            if postgres:
+                if not _insert_postgres(db, prepared, submap_id, utcnow()):
+                    raise _LostRace
+            else:
+                _insert_portable(db, prepared, submap_id, utcnow())
+            db.commit()
+            return _created_body(prepared, submap_id), True
+        except (IntegrityError, _LostRace):
+            db.rollback()
+            existing = _precheck(db, prepared)
+            if existing is not None:
+                return existing, False
+            if attempt == _INSERT_ATTEMPTS - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+class _LostRace(Exception):
+    """(session_id, seq) was inserted by a concurrent upload after the pre-check."""
 
 
 def store(db: Session, blobs: BlobStore, prepared: PreparedSubmap) -> tuple[SubmapCreated, bool]:
     """Store a validated submap; returns the response body and whether it was newly created.
 
     Concurrent identical uploads race on ``unique(session_id, seq)``: the loser re-reads and
-    answers like a retry (200) or a conflict (409), never 500.
+    answers like a retry (200) or a conflict (409), never 500. A database connection that turns out
+    dead (server restart) is retried once on a fresh one: the pre-check makes the retry idempotent,
+    even when the lost connection had committed (the retry then answers 200).
     """
-    existing = _existing(db, prepared)
-    if existing is not None:
-        return existing, False
-    _check_session_owner(db, prepared.meta)
-    db.rollback()  # end the read transaction before the (slow) blob write
-    blobs.put(prepared.mesh_data)  # durable before the row that names it commits
-    for attempt in range(_INSERT_ATTEMPTS):
+    try:
         try:
-            submap = _insert(db, prepared, utcnow())
-            db.commit()
-            return _created_body(db, submap), True
-        except IntegrityError:
-            db.rollback()
-            existing = _existing(db, prepared)
-            if existing is not None:
-                return existing, False
-            if attempt == _INSERT_ATTEMPTS - 1:
+            return _store_once(db, blobs, prepared)
+        except DBAPIError as exc:
+            if not exc.connection_invalidated:
                 raise
-        except BaseException:
             db.rollback()
-            raise
-    raise AssertionError("unreachable")
+        return _store_once(db, blobs, prepared)
+    except BaseException:
+        db.rollback()
+        raise

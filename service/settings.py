@@ -43,6 +43,25 @@ class Settings(BaseSettings):
     db_connect_timeout_s: int = Field(default=5, ge=1, description="TCP/TLS connect timeout, seconds")
     db_statement_timeout_ms: int = Field(default=30_000, ge=0, description="Per statement; 0: none")
     db_pool_recycle_s: float = Field(default=1800.0, gt=0, description="Reopen connections older than this")
+    db_ping_idle_s: float = Field(
+        default=1.0,
+        ge=0,
+        description="Ping a pooled PostgreSQL connection on checkout only after it sat idle this long "
+        "(0: on every checkout); a connection that died in use invalidates the pool and the upload is "
+        "retried once",
+    )
+    auth_cache_s: float = Field(
+        default=5.0,
+        ge=0,
+        description="Cache valid bearer tokens this long per API process (0: off); a revocation takes "
+        "effect within this many seconds (at once in the process that revoked)",
+    )
+    torch_threads: int = Field(
+        default=0,
+        ge=0,
+        description="torch intra-op threads of a fusion worker process (0: torch's default, every core); "
+        "set 1-2 where the worker shares the host with the API and the database",
+    )
     log_level: str = "INFO"
     log_json: bool = False
 

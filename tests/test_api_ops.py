@@ -3,13 +3,14 @@ restart durability, migrations vs models, and the token CLI."""
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine
+from sqlalchemy import create_engine, update
 from sqlalchemy.orm import sessionmaker
 
 from service import cli
@@ -17,9 +18,9 @@ from service.app import create_app
 from service.auth import revoke_tokens
 from service.db import make_engine
 from service.migrate import upgrade
-from service.models import Base
+from service.models import Base, Token, utcnow
 from service.settings import Settings, get_settings
-from tests.conftest import make_meta, make_ply, upload
+from tests.conftest import issue_token, make_meta, make_ply, upload
 
 PROBLEM = "application/problem+json"
 
@@ -134,6 +135,28 @@ def test_revoked_token_is_401(client: TestClient, auth: dict[str, dict[str, str]
         assert revoke_tokens(db, "viewer") == 1
         db.commit()
     assert client.get("/v1/tiles", headers=auth["reader"]).status_code == 401
+
+
+def test_token_cache_honours_revocation(make_client: Any) -> None:
+    client = make_client(auth_cache_s=0.5)
+    headers = issue_token(client, "reader", "viewer")
+    assert client.get("/v1/tiles", headers=headers).status_code == 200  # now cached
+    # revoked by another process (the CLI): honoured once the cache entry expires
+    with client.app.state.session_factory() as db:  # type: ignore[attr-defined]
+        db.execute(update(Token).where(Token.name == "viewer").values(revoked_at=utcnow()))
+        db.commit()
+    deadline = time.monotonic() + 5
+    while client.get("/v1/tiles", headers=headers).status_code == 200:
+        assert time.monotonic() < deadline, "revocation not honoured after the cache TTL"
+        time.sleep(0.1)
+    assert client.get("/v1/tiles", headers=headers).status_code == 401
+    # revoked in this process: at once
+    other = issue_token(client, "reader", "viewer-2")
+    assert client.get("/v1/tiles", headers=other).status_code == 200
+    with client.app.state.session_factory() as db:  # type: ignore[attr-defined]
+        assert revoke_tokens(db, "viewer-2") == 1
+        db.commit()
+    assert client.get("/v1/tiles", headers=other).status_code == 401
 
 
 def test_auth_off(make_client: Any) -> None:

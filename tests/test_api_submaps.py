@@ -301,3 +301,42 @@ def test_get_submap_404_and_roles(client: TestClient, auth: dict[str, dict[str, 
     _assert_problem(client.get(f"/v1/submaps/{created['id']}", headers=auth["vehicle"]), 403)
     _assert_problem(client.get(f"/v1/submaps/{created['id']}"), 401)
     assert client.get(f"/v1/submaps/{created['id']}", headers=auth["reader"]).status_code == 200
+
+
+def _precheck_misses_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make the first pre-check see nothing, as if a concurrent upload committed right after it."""
+    from service import ingest
+
+    real, calls = ingest._precheck, []
+
+    def precheck(db: Any, prepared: Any) -> Any:
+        calls.append(1)
+        return None if len(calls) == 1 else real(db, prepared)
+
+    monkeypatch.setattr(ingest, "_precheck", precheck)
+
+
+def test_upload_racing_an_identical_one_is_200(
+    client: TestClient, auth: dict[str, dict[str, str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first = upload(client, auth["vehicle"], make_meta(), make_ply())
+    assert first.status_code == 201
+    before = _counts(client)
+    _precheck_misses_once(monkeypatch)
+    retry = upload(client, auth["vehicle"], make_meta(), make_ply())
+    assert retry.status_code == 200, retry.text
+    assert retry.json() == first.json()
+    assert _counts(client) == before
+    with client.app.state.session_factory() as db:  # type: ignore[attr-defined]
+        assert db.get(Tile, (0, -1)).dirty_generation == 1  # type: ignore[union-attr]
+
+
+def test_upload_racing_a_session_of_another_agent_is_409(
+    client: TestClient, auth: dict[str, dict[str, str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert upload(client, auth["vehicle"], make_meta(seq=1), make_ply()).status_code == 201
+    before = _counts(client)
+    _precheck_misses_once(monkeypatch)
+    hijack = make_meta(agent_id="veh-007", seq=2)
+    _assert_problem(upload(client, auth["operator"], hijack, make_ply()), 409, "session_agent_mismatch")
+    assert _counts(client) == before

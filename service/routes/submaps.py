@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.concurrency import run_in_threadpool
+from sqlalchemy.orm import Session, sessionmaker
 from starlette.datastructures import UploadFile
 
 from fusion.errors import FusionLibraryError
+from service.auth import Principal
+from service.blobs import BlobStore
 from service.deps import BlobsDep, Reader, SessionDep, SettingsDep, Uploader
 from service.ingest import parse_meta, prepare, store, submap_tile_list
 from service.metrics import UPLOAD_BYTES, UPLOADS, record_rejection
@@ -84,22 +87,16 @@ async def _read_parts(request: Request, settings: Settings) -> tuple[bytes, byte
 )
 async def upload_submap(
     request: Request,
-    response: Response,
     principal: Uploader,
     settings: SettingsDep,
-    db: SessionDep,
     blobs: BlobsDep,
-) -> SubmapCreated:
+) -> Response:
     """Upload one submap: `meta` (JSON) and `mesh` (PLY in the submap's local frame, metres)."""
     try:
         meta_raw, mesh_data = await _read_parts(request, settings)
-        meta = parse_meta(meta_raw)
-        if not principal.may_upload_as(meta.agent_id):
-            raise ProblemError(
-                403, f"this token may upload only as agent {principal.name!r}", code="agent_mismatch"
-            )
-        prepared = await run_in_threadpool(prepare, meta, mesh_data, settings)
-        body, created = await run_in_threadpool(store, db, blobs, prepared)
+        body, created = await run_in_threadpool(
+            _ingest, request.app.state.session_factory, blobs, settings, principal, meta_raw, mesh_data
+        )
     except BodyTooLargeError:
         raise  # counted by BodyLimitMiddleware
     except ProblemError as exc:
@@ -116,8 +113,29 @@ async def upload_submap(
         UPLOAD_BYTES.inc(len(mesh_data))
     else:
         UPLOADS.labels(outcome="retry").inc()
-        response.status_code = 200
-    return body
+    return Response(
+        body.model_dump_json(), status_code=201 if created else 200, media_type="application/json"
+    )
+
+
+def _ingest(
+    session_factory: sessionmaker[Session],
+    blobs: BlobStore,
+    settings: Settings,
+    principal: Principal,
+    meta_raw: bytes,
+    mesh_data: bytes,
+) -> tuple[SubmapCreated, bool]:
+    """The synchronous part of an upload, in one threadpool hop: meta, agent check, mesh
+    validation, blob and transaction."""
+    meta = parse_meta(meta_raw)
+    if not principal.may_upload_as(meta.agent_id):
+        raise ProblemError(
+            403, f"this token may upload only as agent {principal.name!r}", code="agent_mismatch"
+        )
+    prepared = prepare(meta, mesh_data, settings)
+    with session_factory() as db:
+        return store(db, blobs, prepared)
 
 
 @router.get(
