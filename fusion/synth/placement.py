@@ -181,6 +181,13 @@ def place_static(world: World, rng: np.random.Generator) -> list[Part]:
                     xy, yaw = road_frame(road, i, side, p.road_half_width + 0.6)
                     parts += make_object(world, kind, xy, yaw, rng, occ)
                     i += int(rng.uniform(0.7, 1.3) * spacing / max(weight, 0.1) / step)
+            # street furniture (bins, bollards, barriers) at the sidewalk's outer edge
+            if mix.get("obstacle", 1) > 0:
+                i = int(rng.uniform(0, 15) / step)
+                while i < n:
+                    xy, yaw = road_frame(road, i, side, edge - 0.6)
+                    parts += make_object(world, "obstacle", xy, yaw, rng, occ)
+                    i += int(rng.uniform(0.7, 1.3) * 15 / mix.get("obstacle", 1) / step)
             # in the parking strip: parked vehicles and the odd obstacle
             i = int(rng.uniform(0, 6) / step)
             while i < n:

@@ -196,25 +196,31 @@ def _make_roads(params: WorldParams, rng: np.random.Generator) -> list[np.ndarra
 
 
 def _lane_markings(world: World) -> list[Part]:
-    """Dashed centre lines: thin strips raised a little above the road, not inside junctions."""
+    """Dashed centre lines and solid lane edge lines (between the lanes and the parking strips): thin
+    strips raised a little above the road, interrupted inside junctions."""
     p = world.params
     dash, gap = p.marking_dash
+    edge = p.road_half_width - 2.0
     parts = []
     for k, road in enumerate(world.roads):
         others = [r for j, r in enumerate(world.roads) if j != k]
+        other_tree = cKDTree(np.concatenate(others)) if others else None
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(road, axis=0), axis=1))])
+        tangent = np.gradient(road, axis=0)
+        left = np.column_stack([-tangent[:, 1], tangent[:, 0]]) / np.linalg.norm(tangent, axis=1, keepdims=True)
         phase = world.rng.uniform(0, dash + gap)
-        on = ((s + phase) % (dash + gap)) < dash
-        if others:
-            d_other = cKDTree(np.concatenate(others)).query(road)[0]
-            on &= d_other > p.road_half_width + world.sidewalk_width + 1.0
-        edges = np.diff(np.concatenate([[0], on.astype(int), [0]]))
-        for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
-            idx = np.arange(a, b, 2)
-            if len(idx) < 3:
-                continue
-            xy = road[idx]
-            centre = np.column_stack([xy, world.base_height(xy) + p.marking_raise])
-            v, f = shapes.ribbon(centre, p.marking_width)
-            parts.append(Part(v, f, np.full(len(f), LANE), "lane_marking"))
+        for offset in (0.0, edge, -edge):
+            line = road + offset * left
+            on = ((s + phase) % (dash + gap)) < dash if offset == 0.0 else np.ones(len(road), bool)
+            if other_tree is not None:
+                on &= other_tree.query(line)[0] > p.road_half_width + world.sidewalk_width + 1.0
+            runs = np.diff(np.concatenate([[0], on.astype(int), [0]]))
+            for a, b in zip(np.flatnonzero(runs == 1), np.flatnonzero(runs == -1), strict=True):
+                idx = np.arange(a, b, 2)
+                if len(idx) < 3:
+                    continue
+                xy = line[idx]
+                centre = np.column_stack([xy, world.base_height(xy) + p.marking_raise])
+                v, f = shapes.ribbon(centre, p.marking_width)
+                parts.append(Part(v, f, np.full(len(f), LANE), "lane_marking"))
     return parts
