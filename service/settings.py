@@ -32,7 +32,9 @@ class Settings(BaseSettings):
     fusion_preset: str = "cpu"
     fusion_queue: str = "fusion"
     scheduler_interval_s: float = Field(default=5.0, gt=0)
-    lease_s: float = Field(default=1800.0, gt=0, description="Fusion lease length per tile, seconds")
+    lease_s: float = Field(
+        default=120.0, gt=0, description="Fusion lease per tile, seconds; renewed every lease_s/3 while a worker lives"
+    )
     fuse_requeue_s: float = Field(default=600.0, gt=0, description="Re-send a job still queued after this")
     fusion_time_limit_s: float = Field(default=3600.0, gt=0, description="Soft time limit of one fusion")
     # PostgreSQL connection handling (ignored on SQLite). Small timeouts: an outage must give quick
