@@ -150,6 +150,33 @@ def _angle_deg(r: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
+def gauge_alignment(estimated: list[Pose], truth: list[Pose],
+                    anchors: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid transform ``(R, t)`` (map frame) taking the estimated map's gauge to the truth's: the
+    least-squares (Umeyama) fit of points carried by the estimated poses onto the same points carried
+    by the true poses. ``anchors``: per pose, local points (k, 3) it carries (default: its origin, i.e.
+    the pose positions, as ``pose_rmse`` aligns). Points spread over each submap (e.g. a sample of its
+    vertices) also fix the rotation about a straight trajectory, which positions alone leave
+    ill-conditioned. Identity when fewer than 3 points. Uses poses only, never the reconstruction."""
+    if len(estimated) != len(truth) or not estimated:
+        raise ValueError("gauge_alignment needs two equally long, non-empty pose lists")
+    if anchors is None:
+        src = np.array([p.t for p in estimated], np.float64)
+        dst = np.array([p.t for p in truth], np.float64)
+    else:
+        src = np.concatenate([e.apply(np.asarray(a, np.float64)) for e, a in zip(estimated, anchors, strict=True)])
+        dst = np.concatenate([g.apply(np.asarray(a, np.float64)) for g, a in zip(truth, anchors, strict=True)])
+    if len(src) < 3:
+        return np.eye(3), np.zeros(3)
+    r, t, _ = umeyama(src, dst)
+    return r, t
+
+
+def transform_points(ps: PointSet, rotation: np.ndarray, translation: np.ndarray) -> PointSet:
+    """``ps`` moved by ``x ↦ R x + t`` (labels kept)."""
+    return PointSet(ps.points @ np.asarray(rotation).T + np.asarray(translation), ps.labels)
+
+
 def pose_rmse(estimated: list[Pose], truth: list[Pose], align: bool = True) -> tuple[float, float]:
     """(translation RMSE m, rotation RMSE deg) of estimated vs true local → map poses, after the rigid
     transform that best aligns the estimated positions to the true ones (if ``align``)."""
@@ -157,7 +184,7 @@ def pose_rmse(estimated: list[Pose], truth: list[Pose], align: bool = True) -> t
         raise ValueError("pose_rmse needs two equally long, non-empty pose lists")
     te = np.array([p.t for p in estimated])
     tt = np.array([p.t for p in truth])
-    r, t = (umeyama(te, tt)[:2]) if align and len(te) >= 3 else (np.eye(3), np.zeros(3))
+    r, t = gauge_alignment(estimated, truth) if align else (np.eye(3), np.zeros(3))
     te_al = te @ r.T + t
     trans = float(np.sqrt(np.mean(np.sum((te_al - tt) ** 2, axis=1))))
     re = np.array([r @ p.rotation() for p in estimated])

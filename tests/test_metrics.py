@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion.metrics import geometric_prf, pose_rmse, sample_surface, semantic_f1, umeyama
+from fusion.metrics import (
+    PointSet,
+    gauge_alignment,
+    geometric_prf,
+    pose_rmse,
+    sample_surface,
+    semantic_f1,
+    transform_points,
+    umeyama,
+)
 from fusion.types import FusedMesh, Pose
 
 
@@ -88,3 +97,37 @@ def test_pose_rmse_removes_global_rigid_transform() -> None:
     noisy[0] = Pose(truth[0].t + np.array([1.0, 0, 0]), truth[0].q)
     t, _ = pose_rmse(noisy, truth, align=False)
     assert t == pytest.approx(np.sqrt(1 / 10))
+
+
+def _rigid(yaw_deg: float, t: tuple[float, float, float]) -> Pose:
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
+    m[:3, 3] = t
+    return Pose.from_matrix(m)
+
+
+def test_gauge_alignment_undoes_a_global_offset_and_fixes_collinear_trajectories() -> None:
+    # submaps along a straight road (collinear positions): anchors spread over each submap fix the
+    # rotation about the road that positions alone leave undetermined
+    truth = [_rigid(0.0, (10.0 * k, 0.0, 0.0)) for k in range(5)]
+    g = _rigid(2.0, (0.6, -0.4, 0.1))
+    est = [g.compose(p) for p in truth]
+    anchors = [np.array([[0.0, 0, 0], [5.0, 4.0, 0.0], [5.0, -4.0, 3.0], [9.0, 0.0, 0.5]])] * 5
+    r, t = gauge_alignment(est, truth, anchors)
+    pts = np.random.default_rng(0).normal(size=(50, 3)) * 20
+    moved = transform_points(transform_points(as_set(pts), g.rotation(), g.t), r, t)
+    assert np.allclose(moved.points, pts, atol=1e-6)
+    # a fused map that is internally exact but offset by the gauge scores zero absolute, one aligned
+    plane = _plane()
+    offset = FusedMesh(plane.vertices + np.float32([0.0, 0.0, 0.5]), plane.faces, plane.vertex_labels,
+                       plane.vertex_confidence, plane.face_labels)
+    region = ((1.0, 1.0), (9.0, 9.0))
+    assert geometric_prf(offset, plane, region=region)[2] < 0.1
+    shifted = [Pose(p.t + np.array([0.0, 0.0, 0.5]), p.q) for p in truth]
+    r, t = gauge_alignment(shifted, truth, anchors)
+    pred = transform_points(sample_surface(offset.vertices, offset.faces, offset.face_labels, seed=1), r, t)
+    assert geometric_prf(pred, plane, region=region)[2] == pytest.approx(1.0, abs=0.01)
+
+
+def as_set(pts: np.ndarray) -> PointSet:
+    return PointSet(pts, np.zeros(len(pts), np.int64))
