@@ -246,8 +246,9 @@ def _fleetmap(*args: str) -> list[str]:
 @contextlib.contextmanager
 def local_deployment(
     args: argparse.Namespace, vehicles: list[str]
-) -> Iterator[tuple[str, str, dict[str, str]]]:
-    """Start PostgreSQL-database + Redis + API + worker on loopback; yields (url, operator, tokens)."""
+) -> Iterator[tuple[str, str, dict[str, str], int | None]]:
+    """Start PostgreSQL-database + Redis + API + worker on loopback; yields (url, operator, tokens,
+    API pid)."""
     import psycopg
     from sqlalchemy.engine import make_url
 
@@ -269,6 +270,7 @@ def local_deployment(
         FLEETMAP_AUTH="on",
         FLEETMAP_LOG_LEVEL="WARNING",
     )
+    worker_env = dict(env, FLEETMAP_TORCH_THREADS=str(args.torch_threads))
     try:
         subprocess.run(_fleetmap("db", "upgrade"), cwd=REPO, env=env, check=True, capture_output=True)
         tokens = {}
@@ -294,7 +296,7 @@ def local_deployment(
                 subprocess.Popen(
                     _fleetmap("worker", "--concurrency", "1"),
                     cwd=REPO,
-                    env=env,
+                    env=worker_env,
                     stdout=wlog,
                     stderr=subprocess.STDOUT,
                     start_new_session=True,
@@ -374,6 +376,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--api-workers", type=int, default=2, help="uvicorn worker processes")
     parser.add_argument("--fusion-workers", type=int, default=1, help="`fleetmap worker` processes")
     parser.add_argument(
+        "--torch-threads",
+        type=int,
+        default=1,
+        help="FLEETMAP_TORCH_THREADS of the fusion worker (0: torch's default, every core); the worker "
+        "shares this host with the API and PostgreSQL",
+    )
+    parser.add_argument(
         "--pg-url",
         default=os.environ.get(
             "FLEETMAP_TEST_DATABASE_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -385,6 +394,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", action="store_true", help="keep the temporary folder (logs, blobs)")
     args = parser.parse_args(argv)
 
+    print(
+        f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores", flush=True
+    )
     run_id = uuid.uuid4().hex[:6]
     per_vehicle = max(1, -(-args.count // args.clients))
     grid_n = max(4, int(round((args.submap_kb * 1024 / BYTES_PER_GRID_VERTEX) ** 0.5)))
@@ -405,8 +417,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.url:
         if not args.token:
             parser.error("--url needs --token (an operator token)")
-        deployment: contextlib.AbstractContextManager[tuple[str, str, dict[str, str]]] = (
-            contextlib.nullcontext((args.url.rstrip("/"), args.token, {v: args.token for v in vehicles}))
+        deployment: contextlib.AbstractContextManager[tuple[str, str, dict[str, str], int | None]] = (
+            contextlib.nullcontext(
+                (args.url.rstrip("/"), args.token, {v: args.token for v in vehicles}, None)
+            )
         )
     else:
         deployment = local_deployment(args, vehicles)

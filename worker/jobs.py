@@ -254,6 +254,11 @@ def _observe(seconds: float, outcome: str) -> None:
 def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
     from fusion.optimize import fuse_tile  # torch: imported in the worker process only
 
+    threads = get_settings().torch_threads  # FLEETMAP_TORCH_THREADS: leave cores to a co-located API
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
     return fuse_tile(
         inputs.submaps, inputs.tile, inputs.config, progress=keeper, border_pins=inputs.border_pins or None
     )

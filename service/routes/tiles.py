@@ -11,7 +11,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import FileResponse
-from sqlalchemy import and_, distinct, func, or_, select, tuple_
+from sqlalchemy import and_, distinct, func, or_, select
 from sqlalchemy.orm import Session
 
 from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
@@ -28,36 +28,74 @@ MEDIA_TYPES = {"ply": "application/octet-stream", "glb": "model/gltf-binary"}
 IMMUTABLE = "public, max-age=31536000, immutable"
 
 
-def _counts(db: Session, keys: list[tuple[int, int]]) -> dict[tuple[int, int], tuple[int, int]]:
-    """(submaps, distinct sessions) per tile."""
-    if not keys:
-        return {}
-    rows = db.execute(
-        select(SubmapTile.i, SubmapTile.j, func.count(), func.count(distinct(Submap.session_id)))
-        .join(Submap, Submap.id == SubmapTile.submap_id)
-        .where(tuple_(SubmapTile.i, SubmapTile.j).in_(keys))
-        .group_by(SubmapTile.i, SubmapTile.j)
-    ).all()
-    return {(i, j): (n, s) for i, j, n, s in rows}
+# Per-tile aggregates as correlated subqueries: evaluated only for the tiles of the page (an index-only
+# scan of ix_submap_tiles_i_j, and primary-key lookups of the tile's submaps for distinct sessions).
+_SUBMAPS = (
+    select(func.count())
+    .select_from(SubmapTile)
+    .where(SubmapTile.i == Tile.i, SubmapTile.j == Tile.j)
+    .correlate(Tile)
+    .scalar_subquery()
+)
+_SESSIONS = (
+    select(func.count(distinct(Submap.session_id)))
+    .select_from(SubmapTile)
+    .join(Submap, Submap.id == SubmapTile.submap_id)
+    .where(SubmapTile.i == Tile.i, SubmapTile.j == Tile.j)
+    .correlate(Tile)
+    .scalar_subquery()
+)
+_TILE_ROW = select(
+    Tile.i,
+    Tile.j,
+    Tile.state,
+    Tile.version,
+    Tile.fused_at,
+    Tile.progress,
+    Tile.last_error,
+    Tile.job_id,
+    _SUBMAPS.label("submaps"),
+    _SESSIONS.label("sessions"),
+)
 
 
-def tile_public(request: Request, tile: Tile, counts: tuple[int, int]) -> TilePublic:
+_I, _J = "fleetmap-tile-i", "fleetmap-tile-j"  # placeholders in the URL templates
+
+
+class _Links:
+    """The tile links, built from one ``url_for`` per route and request (it was two per tile)."""
+
+    def __init__(self, request: Request) -> None:
+        self.tile = str(request.url_for("get_tile", i=_I, j=_J))
+        self.mesh = str(request.url_for("get_tile_mesh", i=_I, j=_J))
+
+    def of(self, i: int, j: int) -> TileLinks:
+        si, sj = str(i), str(j)
+        return TileLinks(
+            self=self.tile.replace(_I, si).replace(_J, sj),
+            mesh=self.mesh.replace(_I, si).replace(_J, sj),
+        )
+
+
+def _public(links: _Links, row: Any) -> TilePublic:
     return TilePublic(
-        i=tile.i,
-        j=tile.j,
-        state=tile.state,  # type: ignore[arg-type]
-        submaps=counts[0],
-        sessions=counts[1],
-        version=tile.version,
-        fused_at=tile.fused_at,
-        progress=min(max(tile.progress, 0.0), 1.0),
-        last_error=tile.last_error,
-        job_id=tile.job_id,
-        links=TileLinks(
-            self=str(request.url_for("get_tile", i=str(tile.i), j=str(tile.j))),
-            mesh=str(request.url_for("get_tile_mesh", i=str(tile.i), j=str(tile.j))),
-        ),
+        i=row.i,
+        j=row.j,
+        state=row.state,
+        submaps=row.submaps,
+        sessions=row.sessions,
+        version=row.version,
+        fused_at=row.fused_at,
+        progress=min(max(row.progress, 0.0), 1.0),
+        last_error=row.last_error,
+        job_id=row.job_id,
+        links=links.of(row.i, row.j),
     )
+
+
+def _json(model: TilePublic | TilePage) -> Response:
+    """Serialised once by pydantic-core (skips FastAPI's validate-then-serialise of the return value)."""
+    return Response(model.model_dump_json(), media_type="application/json")
 
 
 def _encode_cursor(i: int, j: int) -> str:
@@ -85,11 +123,12 @@ def _parse_bbox(bbox: str, size: float) -> tuple[int, int, int, int]:
     return math.floor(xmin / size), math.floor(ymin / size), math.floor(xmax / size), math.floor(ymax / size)
 
 
-def _get_tile(db: Session, i: int, j: int) -> Tile:
-    tile = db.get(Tile, (i, j))
-    if tile is None or not _counts(db, [(i, j)]):
+def _tile_row(db: Session, i: int, j: int) -> Any:
+    """The tile's row with its counts; 404 unless it holds a submap."""
+    row = db.execute(_TILE_ROW.where(Tile.i == i, Tile.j == j)).first()
+    if row is None or not row.submaps:
         raise ProblemError(404, f"tile ({i}, {j}) holds no submap", code="tile_not_found")
-    return tile
+    return row
 
 
 @router.get("", operation_id="listTiles", response_model=TilePage, responses=problem_responses(401, 403, 422))
@@ -104,7 +143,7 @@ def list_tiles(
     cursor: Annotated[str | None, Query(description="`next_cursor` of the previous page")] = None,
 ) -> TilePage:
     """Tiles ordered by (i, j), optionally filtered by state and by a map-frame box."""
-    query = select(Tile).order_by(Tile.i, Tile.j).limit(limit + 1)
+    query = _TILE_ROW.order_by(Tile.i, Tile.j).limit(limit + 1)
     if state is not None:
         query = query.where(Tile.state == state)
     if bbox is not None:
@@ -113,12 +152,11 @@ def list_tiles(
     if cursor is not None:
         ci, cj = _decode_cursor(cursor)
         query = query.where(or_(Tile.i > ci, and_(Tile.i == ci, Tile.j > cj)))
-    tiles = list(db.scalars(query))
-    page, more = tiles[:limit], len(tiles) > limit
-    counts = _counts(db, [(t.i, t.j) for t in page])
-    items = [tile_public(request, t, counts.get((t.i, t.j), (0, 0))) for t in page]
+    rows = db.execute(query).all()
+    page, more = rows[:limit], len(rows) > limit
+    links = _Links(request)
     next_cursor = _encode_cursor(page[-1].i, page[-1].j) if more and page else None
-    return TilePage(items=items, next_cursor=next_cursor)
+    return _json(TilePage(items=[_public(links, r) for r in page], next_cursor=next_cursor))  # type: ignore[return-value]
 
 
 @router.get(
@@ -129,8 +167,7 @@ def list_tiles(
 )
 def get_tile(i: int, j: int, request: Request, db: SessionDep, _principal: Reader) -> TilePublic:
     """One tile's state, counts, version and links."""
-    tile = _get_tile(db, i, j)
-    return tile_public(request, tile, _counts(db, [(i, j)])[(i, j)])
+    return _json(_public(_Links(request), _tile_row(db, i, j)))  # type: ignore[return-value]
 
 
 @router.post(
@@ -142,7 +179,7 @@ def get_tile(i: int, j: int, request: Request, db: SessionDep, _principal: Reade
 )
 def fuse_tile(i: int, j: int, db: SessionDep, settings: SettingsDep, _principal: Operator) -> FuseAccepted:
     """Queue a (re-)fusion of the tile; an already queued or running job is returned instead."""
-    _get_tile(db, i, j)
+    _tile_row(db, i, j)
     try:
         job = request_fusion(db, i, j, trigger=JobTrigger.operator.value, settings=settings)
     except LookupError as exc:
