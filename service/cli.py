@@ -53,6 +53,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             port=args.port,
             workers=args.workers,
             log_config=None,
+            access_log=False,  # RequestContextMiddleware logs every request (with its request id)
             proxy_headers=True,
         )
         return 0
