@@ -94,6 +94,9 @@ class SemanticSDFField(nn.Module):
 
     def __init__(self, config: FusionConfig, lo: Tensor, hi: Tensor) -> None:
         super().__init__()
+        from fusion.perf import tune_allocator
+
+        tune_allocator()  # glibc: keep large training temporaries on the heap (once per process, see fusion.perf)
         self.norm = TileNormalizer(lo, hi)
         self.grid: FeatureGrid = make_grid(
             config.grid_type,
