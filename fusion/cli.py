@@ -88,6 +88,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from fusion.ablations import run_extras, wants_extras
     from fusion.bench import ROWS, run_bench
 
+    if args.throughput:  # field training points/s micro-benchmark (python -m fusion.perf has more knobs)
+        from fusion.perf import run as run_throughput
+
+        return run_throughput(args)
     if wants_extras(args):  # --baseline / --ablation: fusion.ablations prints its own tables
         run_extras(args)
         return 0
@@ -133,6 +137,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
     p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
     p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")
+    p.add_argument("--throughput", action="store_true",
+                   help="only measure field training throughput (points/s forward+backward, fusion.perf)")
     from fusion.ablations import add_bench_arguments
 
     add_bench_arguments(p)  # --baseline, --ablation NAME|all, --plots DIR, Poisson sizes

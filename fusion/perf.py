@@ -180,15 +180,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Measure and print; ``args`` from ``add_arguments`` or from ``fleetmap bench --throughput`` (which
+    has only ``--preset``: the other settings take their defaults)."""
     if getattr(args, "default_allocator", False):
         os.environ["FLEETMAP_MALLOC_TUNE"] = "0"
-    workloads = tuple(w for w in args.workloads.split(",") if w)
+    workloads = tuple(w for w in getattr(args, "workloads", ",".join(WORKLOADS)).split(",") if w)
     unknown = [w for w in workloads if w not in WORKLOADS]
     if unknown:
         print(f"fleetmap: error: unknown workloads {unknown} (known: {', '.join(WORKLOADS)})", file=sys.stderr)
         return 2
-    preset = getattr(args, "preset", "cpu")
-    report = measure_throughput(preset, args.batch, args.runs, args.warmup, workloads, args.threads)
+    report = measure_throughput(getattr(args, "preset", "cpu"), getattr(args, "batch", None),
+                                getattr(args, "runs", 7), getattr(args, "warmup", 2), workloads,
+                                getattr(args, "threads", None))
     print(format_throughput(report))
     return 0
 
