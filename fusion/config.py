@@ -15,6 +15,12 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
 - Confidence targets of surface samples are the cross-session consensus (fraction of the sessions
   that observed a point's neighbourhood which also saw a surface there) instead of a constant 1, so objects seen by one
   session of many fall below ``c_th`` independent of the grid resolution (``consensus_*``).
+- Surface samples are class-balanced (``class_balance``, ``class_weight_max``): faces of classes rarer
+  (by the submaps' labelled area) than average are drawn up to 4× more often than their area says,
+  so thin classes (lane markings, signs, poles, fences) get enough samples for the semantic head.
+- Face labels are the semantic head's argmax at each face's centroid (``face_labels``), not the
+  majority of its vertex labels: a 0.2 m lane marking between 0.25 m lattice columns has no vertex
+  on it.
 """
 
 from __future__ import annotations
@@ -72,6 +78,8 @@ class FusionConfig:
     consensus_cover_m: float = 2.5  # ... and "saw its neighbourhood" if it has one within this
     consensus_at: tuple[float, ...] = (0.4, 0.7)  # fractions of training at which targets are recomputed
     pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
+    class_balance: float = 0.5  # pool faces weighted by area × (mean class share / class share)^this
+    class_weight_max: float = 4.0  # ... clipped to [1, this] (1: plain area weighting)
     # tile geometry and extraction
     tile_margin_m: float = 8.0
     slab_pad_m: float = 2.0  # height slab = data z-range ± this
@@ -80,6 +88,7 @@ class FusionConfig:
     extract_block: int = 4  # coarse narrow-band block, in voxels
     extract_band: float = 0.75  # refine blocks with a corner |s| below this × block diagonal (or a sign change)
     extract_chunk: int = 65536
+    face_labels: str = "centroid"  # "centroid": semantic head at each face's centroid; "vertices": majority
     # run
     seed: int = 0
     device: str = "auto"  # "auto" → CUDA when available, else CPU

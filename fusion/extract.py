@@ -169,12 +169,18 @@ def extract_mesh(
     c_th: float = 0.7,
     border_pins: Any = None,
     step: StepFn | None = None,
+    face_labels: str = "vertices",
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
     Returns the mesh (faces with a vertex below ``c_th`` dropped, unreferenced vertices removed), the
     border planes (after pinning) and stats. Face normals (right-hand winding) point to free space.
+    Face labels: ``"vertices"`` the majority of the vertex labels, ``"centroid"`` the label at the
+    face's centroid (one more query per face; keeps structures narrower than a voxel, e.g. lane
+    markings, that fall between vertices).
     """
+    if face_labels not in ("vertices", "centroid"):
+        raise ValueError(f"face_labels must be 'vertices' or 'centroid', got {face_labels!r}")
     lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)
     vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step)
     pinned = apply_border_pins(vol, lat, border_pins) if border_pins else 0
@@ -198,9 +204,12 @@ def extract_mesh(
     faces = remap[faces]
     verts, conf, labels = verts[used], conf[used], labels[used]
     vl = labels.astype(np.uint8)
-    mesh = FusedMesh(
-        verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32),
-        _face_labels(vl, faces).astype(np.uint8) if len(faces) else np.zeros(0, np.uint8),
-    )
+    if not len(faces):
+        fl = np.zeros(0, np.uint8)
+    elif face_labels == "centroid":
+        fl = np.asarray(attr_fn(verts[faces].mean(axis=1))[1]).astype(np.uint8)
+    else:
+        fl = _face_labels(vl, faces).astype(np.uint8)
+    mesh = FusedMesh(verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32), fl)
     stats["faces"] = int(len(faces))
     return mesh, border, stats

@@ -91,7 +91,8 @@ def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConf
     xy_lo, xy_hi = np.array([-m, -m]), np.array([tile.size_m + m, tile.size_m + m])
     big = 1e6
     pts, nrm, lab, own = sample_surface_pool(
-        chosen, init, np.array([*xy_lo, -big]), np.array([*xy_hi, big]), config.pool_points, rng
+        chosen, init, np.array([*xy_lo, -big]), np.array([*xy_hi, big]), config.pool_points, rng,
+        config.class_balance, config.class_weight_max,
     )
     if len(pts) == 0:
         raise FusionError(f"the submaps near tile ({tile.i}, {tile.j}) have no surface inside it", code="empty_tile")
@@ -221,6 +222,7 @@ def fuse_tile(
         config.extract_band,
         config.c_th,
         border_pins,
+        face_labels=config.face_labels,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
     extract_s = time.perf_counter() - t_extract

@@ -65,11 +65,18 @@ def sample_surface_pool(
     box_hi: np.ndarray,
     num_points: int,
     rng: np.random.Generator,
+    class_balance: float = 0.0,
+    class_weight_max: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Area-weighted points on all submap faces whose initially posed position lies in the tile box.
 
     ``init_tile``: (4, 4) local → tile pose per submap. Returns local points (P, 3), local normals
     (P, 3), labels (P,), submap index (P,).
+
+    Class-balanced sampling: a face's weight is its area times ``class_weights`` of its label (rare
+    classes, by the submaps' own labelled area, drawn more often), so thin or small classes (lane
+    markings, signs, poles) get enough samples for the semantic head and the SDF; ``class_balance`` 0
+    is plain area weighting.
     """
     areas, normals, tris, labels, owner = [], [], [], [], []
     for k, sm in enumerate(submaps):
@@ -85,7 +92,8 @@ def sample_surface_pool(
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
     tri_all, nrm_all = np.concatenate(tris), np.concatenate(normals)
     lab_all, own_all = np.concatenate(labels), np.concatenate(owner)
-    prob = area / area.sum()
+    weight = area * class_weights(lab_all, area, class_balance, class_weight_max)[lab_all]
+    prob = weight / weight.sum()
 
     def draw(count: int) -> tuple[np.ndarray, ...]:
         f = rng.choice(area.size, size=count, p=prob)
@@ -103,6 +111,25 @@ def sample_surface_pool(
     frac = max(len(pilot[0]) / 20_000, 1e-3)
     out = draw(int(min(num_points / frac * 1.05 + 100, 20 * num_points)))
     return tuple(a[:num_points] for a in out)  # type: ignore[return-value]
+
+
+def class_weights(labels: np.ndarray, area: np.ndarray, balance: float, max_weight: float) -> np.ndarray:
+    """Sampling weight per label id (array indexable by label): ``(mean share / share_k) ** balance``
+    for labelled classes rarer (by area) than the mean of the classes present, clipped to
+    ``[1, max_weight]``; 1 for common classes and unlabeled (0). Shares come from the input submaps."""
+    n = int(labels.max(initial=0)) + 1
+    w = np.ones(n)
+    if balance <= 0 or max_weight <= 1:
+        return w
+    per = np.bincount(labels, weights=area, minlength=n)
+    per[0] = 0.0
+    present = per > 0
+    if present.sum() < 2:
+        return w
+    share = per / per.sum()
+    mean = 1.0 / present.sum()
+    w[present] = np.clip((mean / share[present]) ** balance, 1.0, max_weight)
+    return w
 
 
 def space_boxes(submaps: list[SubmapInput], height_m: float = 4.0, margin_m: float = 1.0) -> tuple[np.ndarray, ...]:

@@ -83,3 +83,20 @@ def test_border_pins_make_different_fields_meet() -> None:
     sa, sb = _seam(a, 8.0), _seam(b, 8.0)
     assert sa.shape == sb.shape and np.abs(sa - sb).max() < 1e-5
     assert np.array_equal(border_b["x0"]["sdf"][:, 4:20], border_a["x1"]["sdf"][:, :16]) or stats["pinned"] > 0
+
+
+def test_centroid_face_labels_keep_a_strip_narrower_than_a_voxel() -> None:
+    def flat(x: np.ndarray) -> np.ndarray:
+        return x[:, 2] - 1.0
+
+    def strip(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # a 0.1 m wide "lane marking" between lattice columns (voxel 0.25 m): no vertex lies on it
+        return np.ones(len(x)), np.where(np.abs(x[:, 0] - 4.125) < 0.05, 3, 1)
+
+    tile = TileSpec(0, 0, 8.0)
+    by_vertices, _, _ = extract_mesh(flat, strip, tile, (0.0, 2.0), 0.25)
+    by_centroid, _, _ = extract_mesh(flat, strip, tile, (0.0, 2.0), 0.25, face_labels="centroid")
+    assert 3 not in set(by_vertices.face_labels.tolist())
+    c = by_centroid.vertices[by_centroid.faces].mean(1)
+    marked = by_centroid.face_labels == 3
+    assert marked.any() and np.all(np.abs(c[marked, 0] - 4.125) < 0.25)

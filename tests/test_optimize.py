@@ -74,3 +74,14 @@ def test_config_round_trip_and_presets() -> None:
     assert paper.iterations == 500 and paper.surface_samples == 125_000
     with pytest.raises(ValueError):
         FusionConfig.from_dict({"nope": 1})
+
+
+def test_class_weights_boost_rare_classes_only() -> None:
+    from fusion.sampling import class_weights
+
+    labels = np.array([0, 1, 1, 2, 3])
+    area = np.array([5.0, 50.0, 40.0, 9.0, 1.0])
+    w = class_weights(labels, area, 0.5, 4.0)
+    assert w[0] == 1.0 and w[1] == 1.0  # unlabeled and the common class keep plain area weighting
+    assert w[3] > w[2] > 1.0 and w[3] <= 4.0
+    assert np.all(class_weights(labels, area, 0.0, 4.0) == 1.0)
