@@ -69,18 +69,21 @@ class BenchContext:
     gt_observed: metrics.PointSet
     transient: metrics.PointSet
     rows: dict[str, dict[str, Any]] = field(default_factory=dict)
+    tile_size: float = TILE_SIZE
 
     @property
     def home(self) -> list[LoadedSubmap]:
         return [s for s in self.submaps if s.home == TILE]
 
 
-def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY) -> BenchContext:
-    """Load the uploads the way the offline path does, and the truth cropped to the benchmark tile."""
-    submaps = load_directory(sim_dir, TILE_SIZE)
+def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY,
+            tile_size: float = TILE_SIZE) -> BenchContext:
+    """Load the uploads the way the offline path does, and the truth cropped to the benchmark tile
+    (tile (0, 0), ``tile_size`` metres)."""
+    submaps = load_directory(sim_dir, tile_size)
     truth = load_ground_truth(sim_dir)
-    lo = (TILE[0] * TILE_SIZE, TILE[1] * TILE_SIZE)
-    region = (lo, (lo[0] + TILE_SIZE, lo[1] + TILE_SIZE))
+    lo = (TILE[0] * tile_size, TILE[1] * tile_size)
+    region = (lo, (lo[0] + tile_size, lo[1] + tile_size))
     gt = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=2), region)
     obs = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=3,
                                               face_mask=truth.observed), region)
@@ -90,7 +93,7 @@ def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY
     if len(tr) and len(gt):
         dist, _ = cKDTree(gt.points).query(tr.points, distance_upper_bound=2 * D)
         tr = tr.subset(dist > 2 * D)
-    return BenchContext(config, submaps, truth, region, gt, obs, tr)
+    return BenchContext(config, submaps, truth, region, gt, obs, tr, tile_size=tile_size)
 
 
 def evaluate_mesh(ctx: BenchContext, mesh: FusedMesh,
@@ -135,7 +138,7 @@ def evaluate_both(ctx: BenchContext, mesh: FusedMesh, poses: dict[str, Pose]) ->
     r, t = gauge_transform(ctx, poses)
     aligned = evaluate_mesh(ctx, mesh, (r, t))
     absolute = evaluate_mesh(ctx, mesh)
-    centre = np.array([(TILE[0] + 0.5) * TILE_SIZE, (TILE[1] + 0.5) * TILE_SIZE, 0.0])
+    centre = np.array([(TILE[0] + 0.5) * ctx.tile_size, (TILE[1] + 0.5) * ctx.tile_size, 0.0])
     angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
     return aligned | {f"abs_{k}": absolute[k] for k in ABS_KEYS} | {
         "gauge_m": float(np.linalg.norm(r @ centre + t - centre)), "gauge_deg": angle}
@@ -152,7 +155,7 @@ def pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, float]:
 
 def _fuse(ctx: BenchContext, fixed: dict[str, Pose] | None = None) -> tuple[dict[str, Any], Any]:
     t0 = time.perf_counter()
-    results = fuse_tiles(ctx.submaps, [TILE], ctx.config, TILE_SIZE, fixed_poses=fixed)
+    results = fuse_tiles(ctx.submaps, [TILE], ctx.config, ctx.tile_size, fixed_poses=fixed)
     wall = time.perf_counter() - t0
     res = results[TILE]
     return {"wall_s": wall, "points_per_s": res.metrics.get("points_per_s")}, res
@@ -236,7 +239,8 @@ def format_table(report: dict[str, Any]) -> str:
     mem = report["memory"]
     lines.append(f"peak memory: {mem['peak_rss_mib']:.0f} MiB RSS" +
                  (f", {mem['peak_gpu_mib']:.0f} MiB GPU" if mem["peak_gpu_mib"] is not None else ""))
-    lines.append(f"submaps {report['submaps']} ({report['home_submaps']} homed in tile {TILE}), sessions "
+    size = report.get("tile_size_m", TILE_SIZE)
+    lines.append(f"submaps {report['submaps']} ({report['home_submaps']} homed in tile {TILE}, {size:g} m), sessions "
                  f"{report['sessions']}, preset {report['preset']}, seed {report['seed']}, simulate {report['simulate_s']:.1f} s")
     for name, t in report["targets"].items():
         mark = {True: "ok", False: "MISSED", None: "n/a"}[t["met"]]
@@ -246,22 +250,26 @@ def format_table(report: dict[str, Any]) -> str:
 
 def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
               json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
-              out: Callable[[str], None] = print) -> dict[str, Any]:
+              out: Callable[[str], None] = print, tile_size: float | None = None) -> dict[str, Any]:
     """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
     ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
     (and optionally write to ``json_path``) every figure."""
     from fusion.config import FusionConfig
+    from fusion.synth.world import WorldParams
 
     cfg = config or FusionConfig.preset(preset)
+    # the paper fuses 128 m tiles; the cpu preset 64 m ones. The world's driven core covers the tile.
+    size = float(tile_size or (128.0 if preset == "paper" else TILE_SIZE))
     with tempfile.TemporaryDirectory(prefix="fleetmap-bench-") as tmp:
         t0 = time.perf_counter()
-        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise)
+        world = WorldParams(core_min=(0.0, 0.0), core_max=(size, size))
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world)
         sim_s = time.perf_counter() - t0
-        ctx = prepare(Path(tmp), cfg)
+        ctx = prepare(Path(tmp), cfg, tile_size=size)
     for name in rows or list(ROWS):
         ctx.rows[name] = ROWS[name](ctx)
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "simulate_s": sim_s,
-              "submaps": len(ctx.submaps), "home_submaps": len(ctx.home), "tile": list(TILE), "d_m": D,
+              "submaps": len(ctx.submaps), "home_submaps": len(ctx.home), "tile": list(TILE), "tile_size_m": size, "d_m": D,
               "rows": ctx.rows, "memory": _peak_memory(), "config": cfg.to_dict()}
     report["targets"] = check_targets(ctx.rows)
     out(format_table(report))

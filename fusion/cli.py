@@ -100,7 +100,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if unknown:
         return _fail(f"unknown bench rows {unknown} (known: {', '.join(ROWS)})")
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg), seed=args.seed,
-              json_path=args.json, rows=rows)
+              json_path=args.json, rows=rows, tile_size=args.tile_size)
     return 0
 
 
@@ -137,6 +137,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
     p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
     p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")
+    p.add_argument("--tile-size", type=float, default=None,
+                   help="benchmark tile edge, metres (default: 64 for cpu, 128 for paper)")
     p.add_argument("--throughput", action="store_true",
                    help="only measure field training throughput (points/s forward+backward, fusion.perf)")
     from fusion.ablations import add_bench_arguments
