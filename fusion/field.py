@@ -20,6 +20,9 @@ from fusion.labels import NUM_CLASSES
 class TileNormalizer(nn.Module):
     """Affine map of map-frame points in the box ``[lo, hi]`` (metres) to [0, 1]³ (per-axis scaling)."""
 
+    lo: Tensor  # (3,) buffer
+    extent: Tensor  # (3,) buffer
+
     def __init__(self, lo: Tensor, hi: Tensor) -> None:
         super().__init__()
         self.register_buffer("lo", lo.float().clone())  # (3,)
@@ -41,6 +44,8 @@ class TileNormalizer(nn.Module):
 
 class PositionalEncoding(nn.Module):
     """``[sin(2^k π x), cos(2^k π x)]`` for ``k < num_frequencies`` on normalised coordinates."""
+
+    freqs: Tensor  # (F,) buffer
 
     def __init__(self, num_frequencies: int) -> None:
         super().__init__()

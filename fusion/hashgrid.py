@@ -17,6 +17,7 @@ function in plain autograd ops; the tests check one against the other.
 from __future__ import annotations
 
 import math
+from typing import TypedDict, Unpack
 
 import torch
 from torch import Tensor, nn
@@ -74,6 +75,18 @@ class HashGrid(FeatureGrid):
         aspect: extent of each axis relative to the longest one (a 64 m × 64 m × 16 m tile box is
             ``(1, 1, 0.25)``) so cells stay cubic in metres.
     """
+
+    # non-persistent buffers (registered in ``__init__``)
+    cells: Tensor  # (L, 3) cells per axis, float
+    verts: Tensor  # (L, 3) lattice vertices per axis
+    dense: Tensor  # (L,) level is indexed densely
+    sizes: Tensor  # (L,) table rows of each level
+    offsets: Tensor  # (L,) first table row of each level
+    dense_corner_offsets: Tensor  # (L, 8)
+    verts32: Tensor  # (L, 3) int32
+    dense_corner_rows: Tensor  # (L, 8) int32
+    offsets32: Tensor  # (L,) int32
+    primes32: Tensor  # (3,) int32
 
     def __init__(
         self,
@@ -292,7 +305,17 @@ class _Interp(torch.autograd.Function):
         return grad_table, grad_x, None, None, None
 
 
-def make_grid(grid_type: str, aspect: tuple[float, float, float], **kwargs: int) -> FeatureGrid:
+class GridSizes(TypedDict, total=False):
+    """Size arguments of ``make_grid`` (``log2_table_size`` is ignored by the dense grids)."""
+
+    num_levels: int
+    features_per_level: int
+    log2_table_size: int
+    base_resolution: int
+    max_resolution: int
+
+
+def make_grid(grid_type: str, aspect: tuple[float, float, float], **kwargs: Unpack[GridSizes]) -> FeatureGrid:
     """Feature grid by name: "hash" here, "dense" / "octree" in ``fusion.densegrid``."""
     if grid_type == "hash":
         return HashGrid(aspect=aspect, **kwargs)

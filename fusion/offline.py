@@ -70,9 +70,9 @@ def load_submap(ply_path: Path, tile_size: float, origin: tuple[float, float, fl
         raise OfflineInputError(f"{meta_path}: missing (each NAME.ply needs a NAME.json meta file)")
     try:
         meta = json.loads(meta_path.read_text())
-        defaults = SubmapInput.__dataclass_fields__
-        gps_sigma = _sigma(meta, "gps_sigma", defaults["gps_sigma"].default)
-        odo_sigma = _sigma(meta, "odometry_sigma", defaults["odometry_sigma"].default)
+        # class attributes of a dataclass field with a default hold that default
+        gps_sigma = _sigma(meta, "gps_sigma", SubmapInput.gps_sigma)
+        odo_sigma = _sigma(meta, "odometry_sigma", SubmapInput.odometry_sigma)
         pose_gps = _gps_pose(meta["gps"], origin)
         sm = SubmapInput(id=ply_path.stem, session_id=str(meta["session_id"]), seq=int(meta["seq"]), mesh=mesh,
                          pose_init=pose_gps, odometry=Pose.from_json(meta["odometry"]), gps_sigma=gps_sigma,

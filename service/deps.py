@@ -8,8 +8,8 @@ process's token cache first (see :mod:`service.auth`) and only on a miss in the 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
-from typing import Annotated
+from collections.abc import Callable, Coroutine, Iterator
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 from fastapi.concurrency import run_in_threadpool
@@ -95,7 +95,7 @@ async def get_principal(
     return principal
 
 
-def require_roles(*roles: Role) -> Callable[[Principal], Principal]:
+def require_roles(*roles: Role) -> Callable[[Principal], Coroutine[Any, Any, Principal]]:
     """A dependency admitting only ``roles`` (403 otherwise)."""
 
     async def check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:

@@ -16,11 +16,11 @@ import hashlib
 import json
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from pydantic import ValidationError
-from sqlalchemy import bindparam, case, func, literal, select, text, tuple_, update
+from sqlalchemy import Table, bindparam, case, func, literal, select, text, tuple_, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlalchemy.orm import Session
@@ -32,6 +32,7 @@ from fusion.tiles import home_tile, submap_tiles
 from fusion.types import Pose, Sigma
 from service.blobs import BlobStore
 from service.models import (
+    Base,
     DrivingSession,
     Submap,
     SubmapTile,
@@ -193,14 +194,19 @@ def _raise_if_other_owner(owner: str | None, meta: SubmapMeta) -> None:
         )
 
 
-def _insert_ignore(db: Session, table: type, rows: list[dict[str, Any]]) -> None:
+def _table(model: type[Base]) -> Table:
+    """The Core ``Table`` of a declarative model (SQLAlchemy types ``__table__`` as a ``FromClause``)."""
+    return cast(Table, model.__table__)
+
+
+def _insert_ignore(db: Session, table: type[Base], rows: list[dict[str, Any]]) -> None:
     """INSERT … ON CONFLICT DO NOTHING on either backend.
 
     Core executemany with bound rows: the statement compiles once and is cached (a ``.values(rows)``
     statement recompiled on every upload and was a hot spot of the ingest path).
     """
     module = postgresql if db.get_bind().dialect.name == "postgresql" else sqlite
-    db.connection().execute(module.insert(table.__table__).on_conflict_do_nothing(), rows)  # type: ignore[attr-defined]
+    db.connection().execute(module.insert(_table(table)).on_conflict_do_nothing(), rows)
 
 
 def mark_tiles_dirty(db: Session, tiles: list[tuple[int, int]], now: datetime) -> None:
@@ -263,10 +269,10 @@ def _insert_portable(db: Session, prepared: PreparedSubmap, submap_id: str, now:
     )
     owner = db.scalar(select(DrivingSession.agent_id).where(DrivingSession.session_id == meta.session_id))
     _raise_if_other_owner(owner, meta)
-    db.execute(Submap.__table__.insert(), [_submap_row(prepared, submap_id, now)])
+    db.execute(_table(Submap).insert(), [_submap_row(prepared, submap_id, now)])
     if prepared.tiles:
         db.execute(
-            SubmapTile.__table__.insert(),
+            _table(SubmapTile).insert(),
             [{"submap_id": submap_id, "i": i, "j": j} for i, j in prepared.tiles],
         )
     mark_tiles_dirty(db, prepared.tiles, now)

@@ -126,9 +126,9 @@ def make_route(world: World, legs: list[tuple[int, int, int, int]], params: Flee
     right = np.column_stack([tangent[:, 1], -tangent[:, 0]])
     path = centre + right * (params.lane_offset + rng.uniform(-0.3, 0.3))
     p = world.params
-    lo = np.asarray(p.core_min) - params.drive_margin
-    hi = np.asarray(p.core_max) + params.drive_margin
-    inside = np.all((path >= lo) & (path <= hi), axis=1)
+    core_lo = np.asarray(p.core_min) - params.drive_margin
+    core_hi = np.asarray(p.core_max) + params.drive_margin
+    inside = np.all((path >= core_lo) & (path <= core_hi), axis=1)
     runs = np.diff(np.concatenate([[0], inside.astype(int), [0]]))
     starts, ends = np.flatnonzero(runs == 1), np.flatnonzero(runs == -1)
     if len(starts) == 0:

@@ -193,11 +193,11 @@ def place_static(world: World, rng: np.random.Generator) -> list[Part]:
             while i < n:
                 u = rng.random()
                 pv, po = 0.35 * mix.get("vehicle", 1), 0.06 * mix.get("obstacle", 1)
-                kind = "vehicle" if u < pv else ("obstacle" if u < pv + po else None)
-                if kind is not None and other_d[i] > edge + 4.0:
-                    lateral = p.road_half_width - 1.0 if kind == "vehicle" else p.road_half_width - 0.5
+                parked = "vehicle" if u < pv else ("obstacle" if u < pv + po else None)
+                if parked is not None and other_d[i] > edge + 4.0:
+                    lateral = p.road_half_width - 1.0 if parked == "vehicle" else p.road_half_width - 0.5
                     xy, yaw = road_frame(road, i, side, lateral)
-                    parts += make_object(world, kind, xy, yaw, rng, occ)
+                    parts += make_object(world, parked, xy, yaw, rng, occ)
                 i += int(rng.uniform(5.5, 7.0) / step)
     parts += _ensure_classes(world, parts, rng, occ)
     return parts

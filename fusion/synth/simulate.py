@@ -52,7 +52,9 @@ def _assemble(world: World, records: list[SubmapRecord]) -> tuple[tuple, tuple]:
     g_obs = np.zeros(len(gf), bool)
     for r in records:
         g_obs[r.seen_ground] = True
-    static, trans = [(gv, gf, gl, g_obs, -1)], []
+    # (vertices, faces, labels, observed, tag): tag = part index (static) or session (transient); ground -1
+    static: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]] = [(gv, gf, gl, g_obs, -1)]
+    trans: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]] = []
     for i, part in enumerate(world.parts):
         obs = np.zeros(len(part.faces), bool)
         for r in records:

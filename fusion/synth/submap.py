@@ -49,8 +49,9 @@ def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose
     lo, hi = sensors[:, :2].min(axis=0) - r, sensors[:, :2].max(axis=0) + r
     mine = [i for i, p in enumerate(world.parts) if p.session in (None, session)
             and np.all(ctx.parts[i][2][:2] <= hi) and np.all(ctx.parts[i][3][:2] >= lo)]
-    occluders = [world.parts[i].footprint for i in mine if world.parts[i].occluder]
-    hidden = [world.parts[i].footprint for i in mine if world.parts[i].footprint is not None]
+    my_parts = [world.parts[i] for i in mine]
+    occluders = [q.footprint for q in my_parts if q.occluder and q.footprint is not None]  # occluders have one
+    hidden = [q.footprint for q in my_parts if q.footprint is not None]
 
     # ground, re-triangulated on a grid of the submap's own frame
     local_sensors = pose.inverse().apply(sensors)

@@ -81,6 +81,8 @@ class Part:
 class World:
     """Ground height/label functions, road centre lines and the labelled parts (map frame)."""
 
+    occupancy: placement.Occupancy  # set by ``placement.place_static`` during ``__init__``
+
     def __init__(self, params: WorldParams) -> None:
         self.params = params
         self.rng = np.random.default_rng(params.seed)
