@@ -28,12 +28,14 @@ The targets on geo F / sem F / transient are checked on the gauge-aligned figure
 from __future__ import annotations
 
 import json
+import operator
 import resource
 import sys
 import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -205,7 +207,7 @@ def check_targets(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
     for key, name in (("pose_trans_m", "pose_trans_reduction"), ("pose_rot_deg", "pose_rot_reduction")):
         value = 1 - fused[key] / gps[key] if key in fused and gps.get(key) else None
-        put(name, value, lambda v, n=name: v >= TARGETS[n])
+        put(name, value, partial(operator.le, TARGETS[name]))  # TARGETS[name] <= v
     put("geo_f", fused.get("geo_f"), lambda v: v >= TARGETS["geo_f"])
     put("sem_f", fused.get("sem_f"), lambda v: v >= TARGETS["sem_f"])
     put("oracle_geo_f", oracle.get("geo_f"), lambda v: v >= TARGETS["oracle_geo_f"])

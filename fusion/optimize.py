@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -112,7 +113,7 @@ def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConf
     # space sampling weight: box footprint (m²) of each submap; a slab fraction is not needed as the
     # samples outside the tile box are rejected
     weight = np.prod(bhi[:, :2] - blo[:, :2], axis=1)
-    f32 = {"dtype": torch.float32, "device": dev}
+    f32: dict[str, Any] = {"dtype": torch.float32, "device": dev}
     sessions = {s: k for k, s in enumerate(sorted({sm.session_id for sm in chosen}))}
     submap_session = np.array([sessions[sm.session_id] for sm in chosen])
     pool = SurfacePool(

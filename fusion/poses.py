@@ -21,6 +21,10 @@ from fusion.types import SubmapInput
 class PoseSet(nn.Module):
     """Corrections for M submaps; ``free`` (M,) bool masks which may move."""
 
+    start: Tensor
+    to_centroid: Tensor
+    free: Tensor
+
     def __init__(self, start: Tensor, centroid: Tensor, free: Tensor) -> None:
         super().__init__()
         m = start.shape[0]
