@@ -8,6 +8,7 @@ library's typed errors, oversized bodies, an unavailable database, and anything 
 from __future__ import annotations
 
 import logging
+from collections.abc import Awaitable, Callable
 from http import HTTPStatus
 from typing import Any
 
@@ -151,24 +152,20 @@ async def _handle_fusion(_request: Request, exc: Exception) -> JSONResponse:
     return problem_response(500, exc.message, code=exc.code)
 
 
-async def _handle_db_unavailable(_request: Request, exc: Exception) -> JSONResponse:
-    log.error("database unavailable: %s", exc.__class__.__name__, exc_info=exc)
-    return problem_response(
-        503,
-        "the database is unavailable, retry later",
-        code="database_unavailable",
-        headers={"Retry-After": "5"},
-    )
+def _unavailable(service: str, code: str) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
+    """A handler answering 503 (with ``Retry-After``) when ``service`` cannot be reached."""
+
+    async def handle(_request: Request, exc: Exception) -> JSONResponse:
+        log.error("%s unavailable: %s", service, exc.__class__.__name__, exc_info=exc)
+        return problem_response(
+            503, f"the {service} is unavailable, retry later", code=code, headers={"Retry-After": "5"}
+        )
+
+    return handle
 
 
-async def _handle_blobs_unavailable(_request: Request, exc: Exception) -> JSONResponse:
-    log.error("blob store unavailable: %s", exc)
-    return problem_response(
-        503,
-        "the blob store is unavailable, retry later",
-        code="blob_store_unavailable",
-        headers={"Retry-After": "5"},
-    )
+_handle_db_unavailable = _unavailable("database", "database_unavailable")
+_handle_blobs_unavailable = _unavailable("blob store", "blob_store_unavailable")
 
 
 async def _handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:

@@ -185,23 +185,8 @@ def commit_success(
         # a neighbour's pose change does not bounce back, so the map settles tile by tile).
         had = (previous[0] or {}).get("submaps", 0) if previous else 0
         dirtied = _mark_tiles_dirty(db, claim, moved, now) if moved and len(inputs.rows) > had else []
-        db.execute(
-            update(FusionJob)
-            .where(FusionJob.id == claim.job_id)
-            .values(
-                state=JobState.succeeded.value,
-                progress=1.0,
-                finished_at=now,
-                error=None,
-                input_fingerprint=inputs.fingerprint,
-                metrics={
-                    **metrics,
-                    "version": version,
-                    "moved_submaps": len(moved),
-                    "tiles_dirtied": dirtied,
-                },
-            )
-        )
+        _job_succeeded(db, claim, now, inputs.fingerprint,
+                       {**metrics, "version": version, "moved_submaps": len(moved), "tiles_dirtied": dirtied})
         db.commit()
     log.info(
         "tile (%d, %d) fused: version %d, state %s, %d submaps moved",
@@ -214,6 +199,22 @@ def commit_success(
     return "succeeded"
 
 
+def _job_succeeded(db: Session, claim: Claim, now: datetime, fingerprint: str, metrics: dict[str, Any]) -> None:
+    """Mark the claimed job succeeded with ``metrics`` (inside the caller's transaction)."""
+    db.execute(
+        update(FusionJob)
+        .where(FusionJob.id == claim.job_id)
+        .values(
+            state=JobState.succeeded.value,
+            progress=1.0,
+            finished_at=now,
+            error=None,
+            input_fingerprint=fingerprint,
+            metrics=metrics,
+        )
+    )
+
+
 def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInputs) -> str:
     """The latest version already used exactly these inputs: finish without a new version."""
     now = utcnow()
@@ -223,18 +224,8 @@ def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInpu
             db.rollback()
             return "lost"
         version, _ = finished
-        db.execute(
-            update(FusionJob)
-            .where(FusionJob.id == claim.job_id)
-            .values(
-                state=JobState.succeeded.value,
-                progress=1.0,
-                finished_at=now,
-                error=None,
-                input_fingerprint=inputs.fingerprint,
-                metrics={"reused_version": version, "submaps": len(inputs.rows)},
-            )
-        )
+        _job_succeeded(db, claim, now, inputs.fingerprint,
+                       {"reused_version": version, "submaps": len(inputs.rows)})
         db.commit()
     log.info("tile (%d, %d): inputs unchanged since version %d; no new version", claim.i, claim.j, version)
     return "reused"
