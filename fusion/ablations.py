@@ -4,8 +4,9 @@ Each study returns table rows (dicts of plain numbers/strings) and, given a dire
 plot (matplotlib, Agg). Simulation, fusion and scoring come from :mod:`fusion.bench` through a
 :class:`Harness`, so the studies use exactly the bench's scenario and metrics.
 
-Row keys: ``geo_p/geo_r/geo_f`` (precision, recall, F at the bench's distance threshold, map frame),
-``sem_f`` (mean per-class F), ``trans_m``/``rot_deg`` (pose RMSE after rigid alignment), ``time_s``.
+Row keys: ``geo_p/geo_r/geo_f`` (precision, recall, F at the bench's distance threshold, gauge-aligned
+like the bench's fused row), ``sem_f`` (mean per-class F, aligned), ``abs_geo_f``/``abs_sem_f`` (the same
+in the absolute map frame), ``trans_m``/``rot_deg`` (pose RMSE after rigid alignment), ``time_s``.
 """
 
 from __future__ import annotations

@@ -21,6 +21,9 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
 - Face labels are the semantic head's argmax at each face's centroid (``face_labels``), not the
   majority of its vertex labels: a 0.2 m lane marking between 0.25 m lattice columns has no vertex
   on it.
+- Progressive LOD starts at 3 of 12 levels (``lod_start_levels``; ~2 m cells on a 64 m tile) rather
+  than a finer start: with 6 levels (~1 m cells) the field fitted sessions ~1 m apart as two surfaces
+  before the poses had moved, and the pose optimisation stalled there (bench seed 2, 3 sessions).
 """
 
 from __future__ import annotations
@@ -69,7 +72,7 @@ class FusionConfig:
     normal_fraction: float = 0.25  # fraction of samples with numerical normals / eikonal
     normal_eps_cells: float = 1.0  # central-difference step in cells of the finest active level
     # progressive level of detail
-    lod_start_levels: int = 6
+    lod_start_levels: int = 3  # coarse start (~2 m cells) widens the pose basin: 6 let sessions ~1 m apart fit as two surfaces
     lod_full_fraction: float = 0.6  # all levels active after this fraction of the iterations
     # confidence
     c_th: float = 0.7
