@@ -4,8 +4,8 @@ Lattice: points at integer multiples of ``voxel_m`` in the *map* frame, so neigh
 coincide. A tile evaluates ``x ∈ [i·S, (i+1)·S]`` and ``y ∈ [j·S, (j+1)·S]`` *inclusive of both
 borders* × its height slab. The SDF is first evaluated on a coarse lattice (every ``block`` voxels, one
 block beyond the tile so both neighbours take the same decision on shared planes); only blocks near
-the surface are evaluated at full resolution, the rest are filled by trilinear upsampling of the
-coarse values (no zero crossing there by construction).
+the surface are evaluated at full resolution, the rest are filled with the coarse value at their
+block's lower corner (same sign as the whole block, so no zero crossing there by construction).
 """
 
 from __future__ import annotations
@@ -17,8 +17,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 from skimage.measure import marching_cubes
 
 from fusion.types import FusedMesh, TileSpec
@@ -54,9 +52,19 @@ def _eval(fn: SdfFn, k: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 def narrow_band_sdf(
-    sdf_fn: SdfFn, lat: Lattice, block: int, band_factor: float = 0.75, step: StepFn | None = None
+    sdf_fn: SdfFn,
+    lat: Lattice,
+    block: int,
+    band_factor: float = 0.75,
+    step: StepFn | None = None,
+    strip_points: int = 1 << 22,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """SDF volume (nx, ny, nz) float64 on the lattice and the mask of exactly evaluated points."""
+    """SDF volume (nx, ny, nz) float32 on the lattice and the mask of exactly evaluated points.
+
+    The volume is filled in x-strips of about ``strip_points`` lattice points (coarse fill, then exact
+    values in the band), so no full-volume float64 temporaries or index arrays exist: at the paper's sizes (128 m at 0.1 m, ~4e8 points) the peak is the float32 volume
+    and the mask, not ~20 GB of intermediates.
+    """
     b, v = block, lat.voxel_m
     c0 = [math.floor(lat.k0[a] / b) - (1 if a < 2 else 0) for a in range(3)]
     c1 = [math.ceil(lat.k1[a] / b) + (1 if a < 2 else 0) for a in range(3)]
@@ -71,33 +79,52 @@ def narrow_band_sdf(
     cs = np.stack(corners)
     thr = band_factor * math.sqrt(3) * b * v
     band = (np.abs(cs).min(0) < thr) | ((cs > 0).any(0) & (cs < 0).any(0))
-    # a fine point is exact when any block containing it is in the band
-    mask = np.zeros(lat.shape, bool)
-    idx_sets = []
+    # a fine point is exact when any block containing it is in the band: per axis, the block holding
+    # it ("first") and, on a block boundary, the block below ("second"); the OR over the 8 choices is
+    # separable, so it is taken one axis at a time (x, y on the small coarse arrays, z per strip)
+    first, second = [], []
     for a in range(3):
         f = np.arange(lat.k0[a], lat.k1[a] + 1) - c0[a] * b
-        first = np.minimum(f // b, band.shape[a] - 1)
-        second = np.where(f % b == 0, np.maximum(f // b - 1, 0), first)
-        idx_sets.append((first, second))
-    for choice in itertools.product((0, 1), repeat=3):
-        mask |= band[np.ix_(idx_sets[0][choice[0]], idx_sets[1][choice[1]], idx_sets[2][choice[2]])]
-    # fill: trilinear upsampling of the coarse lattice, then exact values in the band
-    up = F.interpolate(
-        torch.from_numpy(coarse)[None, None],
-        size=tuple((n - 1) * b + 1 for n in coarse.shape),
-        mode="trilinear",
-        align_corners=True,
-    )[0, 0].numpy()
-    off = [lat.k0[a] - c0[a] * b for a in range(3)]
-    vol = up[off[0] : off[0] + lat.shape[0], off[1] : off[1] + lat.shape[1], off[2] : off[2] + lat.shape[2]].copy()
+        first.append(np.minimum(f // b, band.shape[a] - 1))
+        second.append(np.where(f % b == 0, np.maximum(f // b - 1, 0), first[a]))
+    band_x = band[first[0]] | band[second[0]]  # (nx, cy, cz)
+    band_xy = band_x[:, first[1]] | band_x[:, second[1]]  # (nx, ny, cz)
+    # fill value of a point outside the band: the coarse SDF at its block's lower corner. Every block
+    # holding such a point is outside the band, so all its corners share that sign and |s| >= thr:
+    # no cube without an exact corner has a zero crossing, and marching cubes skips those cubes.
+    fill_xy = coarse[first[0]][:, first[1]].astype(np.float32)  # (nx, ny, cz + 1)
+    vol = np.empty(lat.shape, np.float32)
+    mask = np.empty(lat.shape, bool)
+    # along z, "first" is a run of equal block indices: np.repeat copies runs (several times faster
+    # than a gather); "second" differs from "first" only on block-boundary planes
+    z_blocks, z_runs = np.unique(first[2], return_counts=True)
+    z_edge = np.flatnonzero(second[2] != first[2])
+    width = max(1, strip_points // (lat.shape[1] * lat.shape[2]))
+    for xa in range(0, lat.shape[0], width):
+        xb = min(lat.shape[0], xa + width)
+        strip = mask[xa:xb]
+        strip[:] = np.repeat(band_xy[xa:xb][:, :, z_blocks], z_runs, axis=2)
+        strip[:, :, z_edge] |= band_xy[xa:xb][:, :, second[2][z_edge]]
+        vol[xa:xb] = np.repeat(fill_xy[xa:xb][:, :, z_blocks], z_runs, axis=2)
+        where = np.argwhere(strip)
+        if len(where):
+            where[:, 0] += xa
+            vol[xa:xb][strip] = _eval(sdf_fn, where + np.asarray(lat.k0), v)
     if step:
         step(2, 3)
-    where = np.argwhere(mask)
-    if len(where):
-        vol[mask] = _eval(sdf_fn, where + np.asarray(lat.k0), v)
-    if step:
         step(3, 3)
     return vol, mask
+
+
+def cube_mask(exact: np.ndarray) -> np.ndarray:
+    """skimage's marching-cubes mask: True at ``p`` when the cube whose upper corner is ``p`` has an
+    exactly evaluated corner. Cubes with no exact corner lie in blocks outside the band whose values are
+    filled with same-signed coarse values, so skipping them drops no surface."""
+    out = exact.copy()
+    for dx, dy, dz in itertools.product((0, 1), repeat=3):
+        if dx or dy or dz:
+            out[dx:, dy:, dz:] |= exact[: exact.shape[0] - dx, : exact.shape[1] - dy, : exact.shape[2] - dz]
+    return out
 
 
 SIDES = {"x0": (0, 0), "x1": (0, -1), "y0": (1, 0), "y1": (1, -1)}
@@ -190,7 +217,11 @@ def extract_mesh(
         return FusedMesh.empty(), border, stats
     # skimage's "descent" winding makes right-hand face normals point to s > 0 (free space); pinned by
     # the sphere test in tests/test_extract.py
-    verts_idx, faces, _, _ = marching_cubes(vol, level=0.0, gradient_direction="descent", allow_degenerate=False)
+    try:
+        verts_idx, faces, _, _ = marching_cubes(vol, level=0.0, gradient_direction="descent", allow_degenerate=False,
+                                                mask=cube_mask(mask))
+    except RuntimeError:  # skimage: "No surface found" (the crossings lie outside the band only)
+        return FusedMesh.empty(), border, stats
     verts = (verts_idx.astype(np.float64) + np.asarray(lat.k0, np.float64)) * voxel_m
     stats["raw_faces"] = int(len(faces))
     if len(faces) == 0:
@@ -198,7 +229,7 @@ def extract_mesh(
     conf, labels = attr_fn(verts)
     keep = (conf[faces] >= c_th).all(1)
     faces = faces[keep]
-    used = np.unique(faces)
+    used = np.flatnonzero(np.bincount(faces.ravel(), minlength=len(verts)))  # np.unique without the sort
     remap = np.full(len(verts), -1, np.int64)
     remap[used] = np.arange(len(used))
     faces = remap[faces]
