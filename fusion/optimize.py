@@ -134,10 +134,9 @@ def update_consensus(problem: TileProblem, config: FusionConfig) -> float:
         poses = problem.poses()
         pool_tile = (poses[problem.pool.submap][:, :3, :3].float() @ problem.pool.points[:, :, None])[:, :, 0]
         pool_tile = pool_tile + poses[problem.pool.submap][:, :3, 3].float()
-    target = consensus_targets(
-        pool_tile.cpu().numpy(), problem.pool_session, config.consensus_radius_m, config.consensus_cover_m
-    )
-    problem.pool.conf_target = torch.from_numpy(target).to(problem.pool.points.device)
+    session = torch.as_tensor(problem.pool_session, device=pool_tile.device)
+    target = consensus_targets(pool_tile, session, config.consensus_radius_m, config.consensus_cover_m)
+    problem.pool.conf_target = target
     return float(target.mean())
 
 

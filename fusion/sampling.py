@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from fusion.types import SubmapInput
@@ -189,18 +188,57 @@ def sample_batch(
 
 
 def consensus_targets(
-    pool_tile: np.ndarray, pool_session: np.ndarray, near_m: float, cover_m: float
-) -> np.ndarray:
-    """Confidence target per pool point (P, 3) (tile frame): the fraction of the sessions that observed
-    the neighbourhood (a surface point within ``cover_m``) which also observed this surface (a point
-    within ``near_m``). The road under a parked car that one session of five saw keeps ≈ 0.8, the car
-    itself gets ≈ 0.2; a facade that only the sessions on its street could see keeps 1, because the
-    others observed nothing within ``cover_m`` of it."""
-    near = np.zeros(len(pool_tile), np.int32)
-    cover = np.zeros(len(pool_tile), np.int32)
-    for s in np.unique(pool_session):
-        tree = cKDTree(pool_tile[pool_session == s])
-        d, _ = tree.query(pool_tile, k=1, distance_upper_bound=cover_m, workers=-1)
-        near += d <= near_m
-        cover += np.isfinite(d)
-    return (near / np.maximum(cover, 1)).astype(np.float32)
+    pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27
+) -> Tensor:
+    """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
+    that observed the neighbourhood (a surface point within ~``cover_m``) which also observed this
+    surface (a point within ~``near_m``). The road under a parked car that one session of five saw
+    keeps ≈ 0.8, the car itself gets ≈ 0.2; a facade that only the sessions on its street could see
+    keeps 1, because the others observed nothing within ``cover_m`` of it.
+
+    "Within r" is decided on occupancy grids (cells of r/2, r/4 for the cover), dilated by r with
+    shifted ORs along each axis: a cube of half-width r up to one cell, not a ball. That is O(P + cells) per
+    session on the pool's device instead of a nearest-neighbour query per point and session (42 s for
+    the paper's 2 M points on 2 cores with k-d trees; the thresholds are heuristics either way).
+    """
+    near = torch.zeros(len(pool_tile), dtype=torch.int32, device=pool_tile.device)
+    cover = torch.zeros_like(near)
+    if len(pool_tile) == 0:
+        return near.float()
+    near_hit = _within(pool_tile, pool_session, near_m, 2, max_cells)
+    cover_hit = _within(pool_tile, pool_session, cover_m, 4, max_cells)
+    for hit_n, hit_c in zip(near_hit, cover_hit, strict=True):
+        near += hit_n
+        cover += hit_c
+    return (near / cover.clamp(min=1)).float()
+
+
+def _within(points: Tensor, session: Tensor, radius_m: float, cells_per_radius: int, max_cells: int) -> list[Tensor]:
+    """Per session: (P,) bool, whether the session has a point within ``radius_m`` (cube, ±1 cell)."""
+    lo = points.min(0).values
+    extent = points.max(0).values - lo
+    cell = radius_m / cells_per_radius
+    while float(torch.prod(torch.floor(extent / cell) + 1)) > max_cells:  # huge boxes: coarser cells
+        cell *= 1.5
+    k = max(1, round(radius_m / cell))
+    idx = torch.floor((points - lo) / cell).long()
+    dims = [int(d) + 1 for d in idx.max(0).values]
+    flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+    out = []
+    for s in torch.unique(session):
+        occ = torch.zeros(dims[0] * dims[1] * dims[2], dtype=torch.bool, device=points.device)
+        occ[flat[session == s]] = True
+        out.append(_dilate(occ.view(*dims), k).reshape(-1)[flat])
+    return out
+
+
+def _dilate(grid: Tensor, k: int) -> Tensor:
+    """Boolean dilation by a (2k+1)³ cube, one axis at a time with shifted ORs (max_pool3d on float
+    grids was ~10× slower on CPU)."""
+    for axis in range(grid.ndim):
+        src, grid = grid, grid.clone()
+        n = src.shape[axis]
+        for o in range(1, min(k, n - 1) + 1):
+            grid.narrow(axis, o, n - o).logical_or_(src.narrow(axis, 0, n - o))
+            grid.narrow(axis, 0, n - o).logical_or_(src.narrow(axis, o, n - o))
+    return grid
