@@ -1,11 +1,13 @@
-"""Cross-session consensus targets (confidence supervision): transient objects, occluded road, facades."""
+"""Surface pool sampling (area weighting, tile box) and cross-session consensus targets (confidence
+supervision: transient objects, occluded road, facades)."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from fusion.sampling import consensus_targets
+from fusion.sampling import consensus_targets, sample_surface_pool
+from fusion.types import Pose, SemanticMesh, SubmapInput
 
 
 def _plane(rng: np.random.Generator, x: tuple[float, float], y: tuple[float, float], z: float, n: int) -> np.ndarray:
@@ -52,3 +54,30 @@ def test_huge_boxes_fall_back_to_coarser_cells() -> None:
     s = torch.tensor([0, 1, 1])
     t = consensus_targets(p, s, 0.5, 2.5, max_cells=1 << 16)
     assert t.tolist() == [1.0, 1.0, 1.0]
+
+
+def _square(size: float, label: int) -> SemanticMesh:
+    v = np.array([[0, 0, 0], [size, 0, 0], [size, size, 0], [0, size, 0]], float)
+    return SemanticMesh(v, np.array([[0, 1, 2], [0, 2, 3]]), np.array([label, label]))
+
+
+def test_surface_pool_is_area_weighted_inside_the_box_and_exactly_sized() -> None:
+    # a 4 m and a 2 m square (local frames), the small one posed at x = 10 m; the box cuts the big
+    # one in half, so the pool should hold the two inside areas (8 m², 4 m²) 2:1
+    small_pose = np.eye(4)
+    small_pose[0, 3] = 10.0
+    submaps = [
+        SubmapInput("a", "s", 0, _square(4.0, 1), Pose.identity(), Pose.identity()),
+        SubmapInput("b", "s", 1, _square(2.0, 2), Pose.from_matrix(small_pose), Pose.identity()),
+    ]
+    lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([20.0, 2.0, 1.0])
+    pts, nrm, lab, own = sample_surface_pool(submaps, [np.eye(4), small_pose], lo, hi, 30_000,
+                                             np.random.default_rng(0))
+    assert len(pts) == len(nrm) == len(lab) == len(own) == 30_000
+    posed = np.where(own[:, None] == 1, pts + [10.0, 0, 0], pts)
+    assert np.all((posed >= lo) & (posed <= hi))
+    assert np.allclose(pts[:, 2], 0.0) and np.allclose(np.abs(nrm[:, 2]), 1.0)
+    assert np.array_equal(lab, np.where(own == 0, 1, 2))
+    assert abs((own == 0).mean() - 2 / 3) < 0.02
+    # uniform over the inside area: the big square's kept half splits evenly in x
+    assert abs((pts[own == 0, 0] < 2.0).mean() - 0.5) < 0.02
