@@ -76,7 +76,7 @@ def load_submap(ply_path: Path, tile_size: float, origin: tuple[float, float, fl
         pose_gps = _gps_pose(meta["gps"], origin)
         sm = SubmapInput(id=ply_path.stem, session_id=str(meta["session_id"]), seq=int(meta["seq"]), mesh=mesh,
                          pose_init=pose_gps, odometry=Pose.from_json(meta["odometry"]), gps_sigma=gps_sigma,
-                         odometry_sigma=odo_sigma)
+                         odometry_sigma=odo_sigma, pose_gps=pose_gps)
     except FusionLibraryError as exc:
         raise OfflineInputError(f"{meta_path}: {exc.message}") from exc
     except (KeyError, TypeError, ValueError) as exc:

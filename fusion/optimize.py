@@ -73,7 +73,7 @@ class TileProblem:
     pool_session: np.ndarray  # (P,)
     submap_session: np.ndarray  # (M,)
     poses: PoseSet
-    init_tile: torch.Tensor  # (M, 4, 4) GPS poses, tile frame (float64)
+    init_tile: torch.Tensor  # (M, 4, 4) GPS poses (the prior's anchor), tile frame (float64)
 
 
 def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConfig, dev: torch.device) -> TileProblem:
@@ -87,6 +87,7 @@ def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConf
     shift = np.eye(4)
     shift[:3, 3] = -origin
     init = [shift @ sm.pose_init.matrix() for sm in chosen]
+    gps = [shift @ (sm.pose_gps or sm.pose_init).matrix() for sm in chosen]
     rng = np.random.default_rng(config.seed)
     m = config.tile_margin_m
     xy_lo, xy_hi = np.array([-m, -m]), np.array([tile.size_m + m, tile.size_m + m])
@@ -125,7 +126,7 @@ def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConf
     free = torch.tensor([sm.free for sm in chosen])
     poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids), free).to(dev)
     return TileProblem(chosen, origin, lo, hi, pool, boxes, blo, bhi, submap_session[own], submap_session, poses,
-                       torch.tensor(np.stack(init), dtype=torch.float64, device=dev))
+                       torch.tensor(np.stack(gps), dtype=torch.float64, device=dev))
 
 
 def update_consensus(problem: TileProblem, config: FusionConfig) -> float:

@@ -158,6 +158,9 @@ class SubmapInput:
     """One submap as the fusion sees it.
 
     ``pose_init``: initial local → map pose (GPS, or the current refined pose);
+    ``pose_gps``: the GPS fix the weak GPS prior (the gauge) anchors to; None means ``pose_init``.
+    Re-fusions start from the refined pose but keep anchoring to GPS, so repeated fusions of a tile
+    do not let the map's gauge random-walk away from GPS;
     ``odometry``: local → session-odometry-frame pose; ``free``: whether fusion may move the pose
     (submaps owned by another tile are held fixed).
     """
@@ -171,6 +174,7 @@ class SubmapInput:
     gps_sigma: Sigma = Sigma(2.0, 2.0)
     odometry_sigma: Sigma = Sigma(0.05, 0.5)
     free: bool = True
+    pose_gps: Pose | None = None
 
 
 @dataclass(frozen=True)

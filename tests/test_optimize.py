@@ -85,3 +85,26 @@ def test_class_weights_boost_rare_classes_only() -> None:
     assert w[0] == 1.0 and w[1] == 1.0  # unlabeled and the common class keep plain area weighting
     assert w[3] > w[2] > 1.0 and w[3] <= 4.0
     assert np.all(class_weights(labels, area, 0.0, 4.0) == 1.0)
+
+
+def test_gps_prior_anchors_to_the_gps_fix_not_the_starting_pose() -> None:
+    """A re-fusion starts from refined poses (``pose_init``) but its GPS prior keeps the GPS fix."""
+    from dataclasses import replace
+
+    import torch
+
+    from fusion.optimize import build_problem
+
+    subs, _ = two_sessions(offset=(0.5, -0.4, 0.1), yaw_deg=1.0)
+    moved = Pose(np.array([0.3, 0.2, 0.0]), np.array([1.0, 0.0, 0.0, 0.0]))
+    refused = [replace(s, pose_init=moved.compose(s.pose_init), pose_gps=s.pose_init) for s in subs]
+    cfg = tiny_config().with_(odom_init=False)
+    problem = build_problem(refused, TILE, cfg, torch.device("cpu"))
+    gps = np.stack([s.pose_init.matrix() for s in subs])  # tile (0, 0): tile frame = map frame
+    start = np.stack([s.pose_init.matrix() for s in refused])
+    assert np.allclose(problem.init_tile.numpy(), gps)
+    with torch.no_grad():
+        assert np.allclose(problem.poses().numpy(), start, atol=1e-6)
+    # without a separate fix the prior anchors to the starting pose (first fusion: GPS)
+    plain = build_problem([replace(s, pose_gps=None) for s in refused], TILE, cfg, torch.device("cpu"))
+    assert np.allclose(plain.init_tile.numpy(), start)

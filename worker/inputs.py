@@ -165,6 +165,7 @@ def load_meshes(db: Session, blobs: BlobStore, settings: Settings, inputs: TileI
             gps_sigma=Sigma(s.gps_sigma_trans_m, s.gps_sigma_rot_deg),
             odometry_sigma=Sigma(s.odometry_sigma_trans_m, s.odometry_sigma_rot_deg),
             free=free,
+            pose_gps=Pose.from_json(s.pose_gps),
         )
         for s, pose, free in inputs.rows
     ]
