@@ -62,8 +62,9 @@ def narrow_band_sdf(
     """SDF volume (nx, ny, nz) float32 on the lattice and the mask of exactly evaluated points.
 
     The volume is filled in x-strips of about ``strip_points`` lattice points (coarse fill, then exact
-    values in the band), so no full-volume float64 temporaries or index arrays exist: at the paper's sizes (128 m at 0.1 m, ~4e8 points) the peak is the float32 volume
-    and the mask, not ~20 GB of intermediates.
+    values in the band), so no full-volume float64 temporaries or index arrays exist: at 128 m and
+    0.1 m (~4e8 points) the peak is the float32 volume and the mask, not ~13 GB of intermediates.
+    ``step(done, total)`` is called after the coarse pass and after each strip.
     """
     b, v = block, lat.voxel_m
     c0 = [math.floor(lat.k0[a] / b) - (1 if a < 2 else 0) for a in range(3)]
@@ -71,8 +72,6 @@ def narrow_band_sdf(
     axes = [np.arange(c0[a], c1[a] + 1) * b for a in range(3)]
     ck = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     coarse = _eval(sdf_fn, ck, v).reshape(*(len(ax) for ax in axes))
-    if step:
-        step(1, 3)
     # band blocks: a corner close to the surface (|s| below the block diagonal) or a sign change
     corners = [coarse[dx : coarse.shape[0] - 1 + dx, dy : coarse.shape[1] - 1 + dy, dz : coarse.shape[2] - 1 + dz]
                for dx, dy, dz in itertools.product((0, 1), repeat=3)]
@@ -100,6 +99,9 @@ def narrow_band_sdf(
     z_blocks, z_runs = np.unique(first[2], return_counts=True)
     z_edge = np.flatnonzero(second[2] != first[2])
     width = max(1, strip_points // (lat.shape[1] * lat.shape[2]))
+    total = 1 + -(-lat.shape[0] // width)
+    if step:
+        step(1, total)
     for xa in range(0, lat.shape[0], width):
         xb = min(lat.shape[0], xa + width)
         strip = mask[xa:xb]
@@ -110,9 +112,8 @@ def narrow_band_sdf(
         if len(where):
             where[:, 0] += xa
             vol[xa:xb][strip] = _eval(sdf_fn, where + np.asarray(lat.k0), v)
-    if step:
-        step(2, 3)
-        step(3, 3)
+        if step:
+            step(1 + -(-xb // width), total)
     return vol, mask
 
 

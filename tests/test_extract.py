@@ -130,3 +130,13 @@ def test_strips_do_not_change_the_volume() -> None:
     many, mask_many = narrow_band_sdf(sphere, lat, block=4, strip_points=3000)
     assert np.array_equal(mask_one, mask_many)
     assert np.allclose(one, many, atol=1e-6)
+
+
+def test_progress_counts_up_to_its_total() -> None:
+    lat = tile_lattice(TileSpec(0, 0, 8.0), 0.0, 6.0, 0.25)
+    calls: list[tuple[int, int]] = []
+    narrow_band_sdf(sphere, lat, block=4, step=lambda done, total: calls.append((done, total)),
+                    strip_points=4000)
+    totals = {t for _, t in calls}
+    assert len(totals) == 1 and len(calls) == totals.pop() > 2
+    assert [d for d, _ in calls] == list(range(1, len(calls) + 1))
