@@ -316,11 +316,10 @@ def default_harness(args: argparse.Namespace) -> Harness:
 def main(argv: list[str] | None = None) -> int:
     """``python -m fusion.ablations --baseline | --ablation NAME`` (the same options as ``fleetmap bench``)."""
     parser = argparse.ArgumentParser(prog="fusion.ablations", description=__doc__.splitlines()[0])
+    from fusion.cli import add_fleet_arguments
+
     parser.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
-    parser.add_argument("--sessions", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--gps-noise-m", type=float, default=1.5)
-    parser.add_argument("--gps-noise-deg", type=float, default=1.5)
+    add_fleet_arguments(parser)
     add_bench_arguments(parser)
     args = parser.parse_args(argv)
     if not wants_extras(args):

@@ -68,6 +68,7 @@ def bench_harness(args: argparse.Namespace) -> Harness:
         "gps_sigma_m": getattr(args, "gps_noise_m", 1.5),
         "gps_sigma_deg": getattr(args, "gps_noise_deg", 1.5),
         "submap_length": FleetParams().submap_length,
+        "vertex_noise_m": getattr(args, "vertex_noise_m", FleetParams().vertex_noise_m),
     }
     tile_key = bench.TILE
 
@@ -79,7 +80,7 @@ def bench_harness(args: argparse.Namespace) -> Harness:
                 seed=p["seed"],
                 sessions=p["sessions"],
                 gps_noise=(p["gps_sigma_m"], p["gps_sigma_deg"]),
-                fleet_params=FleetParams(submap_length=p["submap_length"]),
+                fleet_params=FleetParams(submap_length=p["submap_length"], vertex_noise_m=p["vertex_noise_m"]),
             )
             upload = sum(f.stat().st_size for f in Path(tmp).glob("*.ply"))
             upload += sum(f.stat().st_size for f in Path(tmp).glob("*.json"))

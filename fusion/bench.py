@@ -252,11 +252,13 @@ def format_table(report: dict[str, Any]) -> str:
 
 def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
               json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
-              out: Callable[[str], None] = print, tile_size: float | None = None) -> dict[str, Any]:
+              out: Callable[[str], None] = print, tile_size: float | None = None,
+              vertex_noise_m: float | None = None) -> dict[str, Any]:
     """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
     ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
     (and optionally write to ``json_path``) every figure."""
     from fusion.config import FusionConfig
+    from fusion.synth.fleet import FleetParams
     from fusion.synth.world import WorldParams
 
     cfg = config or FusionConfig.preset(preset)
@@ -265,12 +267,14 @@ def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, fl
     with tempfile.TemporaryDirectory(prefix="fleetmap-bench-") as tmp:
         t0 = time.perf_counter()
         world = WorldParams(core_min=(0.0, 0.0), core_max=(size, size))
-        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world)
+        fleet = FleetParams(vertex_noise_m=vertex_noise_m) if vertex_noise_m is not None else None
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet)
         sim_s = time.perf_counter() - t0
         ctx = prepare(Path(tmp), cfg, tile_size=size)
     for name in rows or list(ROWS):
         ctx.rows[name] = ROWS[name](ctx)
-    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "simulate_s": sim_s,
+    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise),
+              "vertex_noise_m": vertex_noise_m if vertex_noise_m is not None else FleetParams().vertex_noise_m, "simulate_s": sim_s,
               "submaps": len(ctx.submaps), "home_submaps": len(ctx.home), "tile": list(TILE), "tile_size_m": size, "d_m": D,
               "rows": ctx.rows, "memory": _peak_memory(), "config": cfg.to_dict()}
     report["targets"] = check_targets(ctx.rows)

@@ -41,9 +41,11 @@ def _guard(handler: Callable[[argparse.Namespace], int]) -> Callable[[argparse.N
 @_guard
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Write a synthetic fleet's uploads (NAME.ply + NAME.json) and ground_truth/ to OUT."""
+    from fusion.synth.fleet import FleetParams
     from fusion.synth.simulate import simulate
 
-    records = simulate(args.out, seed=args.seed, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg))
+    records = simulate(args.out, seed=args.seed, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg),
+                       fleet_params=FleetParams(vertex_noise_m=args.vertex_noise_m))
     print(f"wrote {len(records)} submaps of {args.sessions} sessions to {args.out} (ground truth in ground_truth/)")
     return 0
 
@@ -100,7 +102,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if unknown:
         return _fail(f"unknown bench rows {unknown} (known: {', '.join(ROWS)})")
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg), seed=args.seed,
-              json_path=args.json, rows=rows, tile_size=args.tile_size)
+              json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m)
     return 0
 
 
@@ -111,14 +113,21 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def register(subparsers: Any) -> None:
-    """Add ``simulate``, ``fuse`` and ``bench`` to an argparse sub-parser collection; each sets ``func``."""
-    p = subparsers.add_parser("simulate", help="write a synthetic fleet's submap uploads and ground truth")
-    p.add_argument("out", help="output directory")
+def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
+    """The synthetic fleet's options (``simulate``, ``bench``, ``python -m fusion.ablations``)."""
     p.add_argument("--seed", type=int, default=0, help="world and fleet seed (default 0)")
     p.add_argument("--sessions", type=_positive_int, default=5, help="driving sessions (default 5)")
     p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
     p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
+    p.add_argument("--vertex-noise-m", type=float, default=0.025,
+                   help="submap vertex noise sigma, metres (default 0.025): how exact the vehicles' meshes are")
+
+
+def register(subparsers: Any) -> None:
+    """Add ``simulate``, ``fuse`` and ``bench`` to an argparse sub-parser collection; each sets ``func``."""
+    p = subparsers.add_parser("simulate", help="write a synthetic fleet's submap uploads and ground truth")
+    p.add_argument("out", help="output directory")
+    add_fleet_arguments(p)
     p.set_defaults(func=cmd_simulate)
 
     p = subparsers.add_parser("fuse", help="fuse a directory of submaps (NAME.ply + NAME.json) tile by tile")
@@ -132,10 +141,7 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("bench", help="simulate, fuse one tile and evaluate against the ground truth")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fusion configuration (default cpu)")
     p.add_argument("--json", default=None, metavar="FILE", help="write every figure to FILE")
-    p.add_argument("--sessions", type=_positive_int, default=5, help="driving sessions (default 5)")
-    p.add_argument("--seed", type=int, default=0, help="world and fleet seed (default 0)")
-    p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
-    p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
+    add_fleet_arguments(p)
     p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")
     p.add_argument("--tile-size", type=float, default=None,
                    help="benchmark tile edge, metres (default: 64 for cpu, 128 for paper)")
