@@ -13,8 +13,9 @@ import torch
 from torch import Tensor, nn
 
 from fusion.config import FusionConfig
-from fusion.hashgrid import FeatureGrid, make_grid
+from fusion.grids import FeatureGrid, make_grid
 from fusion.labels import NUM_CLASSES
+from fusion.runtime import tune_allocator
 
 
 class TileNormalizer(nn.Module):
@@ -99,9 +100,7 @@ class SemanticSDFField(nn.Module):
 
     def __init__(self, config: FusionConfig, lo: Tensor, hi: Tensor) -> None:
         super().__init__()
-        from fusion.perf import tune_allocator
-
-        tune_allocator()  # glibc: keep large training temporaries on the heap (once per process, see fusion.perf)
+        tune_allocator()  # glibc: keep large training temporaries on the heap (once per process, see fusion.runtime)
         self.norm = TileNormalizer(lo, hi)
         self.grid: FeatureGrid = make_grid(
             config.grid_type,

@@ -107,7 +107,7 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     poses each tile's home submaps get. ``fixed_poses``: if given, every submap is held at that pose
     (no pose optimisation; e.g. true poses for an oracle). A tile the fusion finds no data in (its
     submaps only graze it through their GPS uncertainty) is recorded in ``skipped`` (else raised)."""
-    from fusion.optimize import fuse_tile
+    from fusion.reconstruct import fuse_tile
 
     refined = {} if refined is None else refined
     results: dict[tuple[int, int], FusionResult] = {}

@@ -1,4 +1,4 @@
-"""Alembic environment: runs migrations against the connection handed in by ``service.migrate``
+"""Alembic environment: runs migrations against the connection handed in by ``service.store.migrate``
 (``config.attributes["connection"]``) or against the configured FLEETMAP_DATABASE_URL."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from typing import Any
 from alembic import context
 from sqlalchemy import Connection
 
-from service.models import Base, UTCDateTime
+from service.store.models import Base, UTCDateTime
 
 config = context.config
 target_metadata = Base.metadata
@@ -38,8 +38,8 @@ def run_migrations_online() -> None:
     if connection is not None:
         _run(connection)
         return
-    from service.db import make_engine
     from service.settings import get_settings
+    from service.store.db import make_engine
 
     url = config.get_main_option("sqlalchemy.url") or get_settings().resolved_database_url
     engine = make_engine(url)

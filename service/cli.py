@@ -19,7 +19,7 @@ EXIT_ERROR = 2
 # Subcommands whose own modules parse the rest of the command line: name → "module:function".
 PASSTHROUGH = {
     "worker": ("worker.main:main", "run a Celery fusion worker (production)"),
-    "demo": ("service.demo:main", "run the embedded demo: simulate a fleet, upload, fuse, serve"),
+    "demo": ("service.client.demo:main", "run the embedded demo: simulate a fleet, upload, fuse, serve"),
 }
 
 
@@ -28,7 +28,7 @@ class CliError(Exception):
 
 
 def _engine(settings: Settings) -> Any:
-    from service.db import engine_from_settings
+    from service.store.db import engine_from_settings
 
     return engine_from_settings(settings)
 
@@ -37,7 +37,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the API (uvicorn). Embedded mode upgrades the database and starts the embedded worker."""
     import uvicorn
 
-    from service.app import create_app
+    from service.api.app import create_app
 
     settings = get_settings()
     if args.workers > 1:
@@ -47,7 +47,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                 "--workers > 1 needs a broker (FLEETMAP_BROKER_URL): the embedded worker is per process"
             )
         uvicorn.run(
-            "service.app:create_app",
+            "service.api.app:create_app",
             factory=True,
             host=args.host,
             port=args.port,
@@ -63,7 +63,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
-    from service.migrate import upgrade
+    from service.store.migrate import upgrade
 
     engine = _engine(get_settings())
     try:
@@ -76,8 +76,8 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 def _with_db(action: Callable[[Any], int]) -> int:
     """Run ``action(session)`` in one transaction (upgrading an embedded database first)."""
-    from service.db import make_sessionmaker, session_scope
-    from service.migrate import upgrade
+    from service.store.db import make_sessionmaker, session_scope
+    from service.store.migrate import upgrade
 
     settings = get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -92,7 +92,7 @@ def _with_db(action: Callable[[Any], int]) -> int:
 
 
 def cmd_token_create(args: argparse.Namespace) -> int:
-    from service.auth import create_token
+    from service.api.auth import create_token
 
     def action(db: Any) -> int:
         token, secret = create_token(db, args.role, args.name)
@@ -107,7 +107,7 @@ def cmd_token_create(args: argparse.Namespace) -> int:
 
 
 def cmd_token_list(_args: argparse.Namespace) -> int:
-    from service.auth import list_tokens
+    from service.api.auth import list_tokens
 
     def action(db: Any) -> int:
         print(f"{'id':36}  {'role':8}  {'name':24}  {'created':25}  revoked")
@@ -122,7 +122,7 @@ def cmd_token_list(_args: argparse.Namespace) -> int:
 
 
 def cmd_token_revoke(args: argparse.Namespace) -> int:
-    from service.auth import revoke_tokens
+    from service.api.auth import revoke_tokens
 
     def action(db: Any) -> int:
         count = revoke_tokens(db, args.token)
@@ -177,9 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=_passthrough(target))
 
     try:
-        fusion_cli = importlib.import_module("fusion.cli")
+        fusion_cli = importlib.import_module("fusion.eval.cli")
     except ModuleNotFoundError as exc:
-        if exc.name != "fusion.cli":
+        if exc.name != "fusion.eval.cli":
             raise
     else:
         fusion_cli.register(sub)  # adds simulate / fuse / bench; each sets ``func``

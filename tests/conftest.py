@@ -20,8 +20,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
-from service.app import create_app
-from service.auth import create_token
+from service.api.app import create_app
+from service.api.auth import create_token
 from service.settings import Settings
 
 PG_URL = os.environ.get("FLEETMAP_TEST_DATABASE_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")

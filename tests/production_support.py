@@ -363,8 +363,8 @@ class Deployment:
 
     def migrate_and_token(self) -> None:
         """Upgrade the schema and create an operator token (in-process, directly on the database)."""
-        from service.auth import create_token
-        from service.migrate import upgrade
+        from service.api.auth import create_token
+        from service.store.migrate import upgrade
 
         upgrade(self.engine)
         with self.session() as db:

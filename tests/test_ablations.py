@@ -8,8 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.ablations import STUDIES, Harness, add_bench_arguments, format_table, run_extras, wants_extras
 from fusion.config import FusionConfig
+from fusion.eval.ablations import (
+    STUDIES,
+    Harness,
+    add_bench_arguments,
+    format_table,
+    run_extras,
+    wants_extras,
+)
 from fusion.types import FusedMesh, Pose, TileSpec
 
 

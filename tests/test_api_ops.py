@@ -14,12 +14,12 @@ from sqlalchemy import create_engine, update
 from sqlalchemy.orm import sessionmaker
 
 from service import cli
-from service.app import create_app
-from service.auth import revoke_tokens
-from service.db import make_engine
-from service.migrate import upgrade
-from service.models import Base, Token, utcnow
+from service.api.app import create_app
+from service.api.auth import revoke_tokens
 from service.settings import Settings, get_settings
+from service.store.db import make_engine
+from service.store.migrate import upgrade
+from service.store.models import Base, Token, utcnow
 from tests.conftest import issue_token, make_meta, make_ply, upload
 
 PROBLEM = "application/problem+json"

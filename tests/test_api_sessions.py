@@ -6,7 +6,7 @@ from urllib.parse import quote
 
 from fastapi.testclient import TestClient
 
-from service.models import Submap
+from service.store.models import Submap
 from tests.conftest import SESSION, make_meta, make_ply, upload
 
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from service.blobs import BlobNotFoundError, BlobStore, FileBlobStore, blob_store_from_url, sha256_bytes
-from service.logs import JsonFormatter, RequestIdFilter, request_id_var
+from service.store.blobs import BlobNotFoundError, BlobStore, FileBlobStore, blob_store_from_url, sha256_bytes
+from service.telemetry import JsonFormatter, RequestIdFilter, request_id_var
 
 
 def test_file_blob_store_roundtrip(tmp_path: Path) -> None:

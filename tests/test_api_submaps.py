@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from service.models import Submap, SubmapTile, Tile
+from service.store.models import Submap, SubmapTile, Tile
 from tests.conftest import SESSION, VEHICLE, issue_token, make_meta, make_ply, upload
 
 PROBLEM = "application/problem+json"
@@ -305,7 +305,7 @@ def test_get_submap_404_and_roles(client: TestClient, auth: dict[str, dict[str, 
 
 def _precheck_misses_once(monkeypatch: pytest.MonkeyPatch) -> None:
     """Make the first pre-check see nothing, as if a concurrent upload committed right after it."""
-    from service import ingest
+    from service.api import ingest
 
     real, calls = ingest._precheck, []
 

@@ -9,7 +9,7 @@ from fastapi.testclient import TestClient
 
 from fusion.meshio import read_fused_ply, write_fused_ply, write_glb
 from fusion.types import FusedMesh
-from service.models import Tile, TileVersion, utcnow
+from service.store.models import Tile, TileVersion, utcnow
 from tests.conftest import make_meta, make_ply, upload
 
 PROBLEM = "application/problem+json"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fusion.baseline_poisson import OrientedSamples, label_and_clip, majority_labels
+from fusion.eval.baseline.poisson import OrientedSamples, label_and_clip, majority_labels
 from fusion.types import Pose, SemanticMesh, SubmapInput, TileSpec
 
 ROAD, BUILDING = 1, 5
@@ -66,7 +66,7 @@ def test_label_and_clip_keeps_faces_with_centroid_in_tile() -> None:
 @pytest.mark.parametrize("method", ["icp", "gicp"])
 def test_baseline_recovers_shift_and_labels_mesh(method: str) -> None:
     pytest.importorskip("open3d")
-    from fusion.baseline import BaselineConfig, run_baseline
+    from fusion.eval.baseline.registration import BaselineConfig, run_baseline
 
     shift = np.array([0.5, 0.0, 0.0])
     subs, truth = _submaps(shift)
@@ -95,7 +95,7 @@ def test_baseline_recovers_shift_and_labels_mesh(method: str) -> None:
 
 def test_gps_variant_keeps_initial_poses() -> None:
     pytest.importorskip("open3d")
-    from fusion.baseline import BaselineConfig, run_baseline
+    from fusion.eval.baseline.registration import BaselineConfig, run_baseline
 
     subs, _ = _submaps(np.array([0.5, 0.0, 0.0]))
     cfg = BaselineConfig(method="gps", poisson_points=20_000, poisson_depth=6)
@@ -105,7 +105,7 @@ def test_gps_variant_keeps_initial_poses() -> None:
 
 def test_fixed_submaps_stay_put() -> None:
     pytest.importorskip("open3d")
-    from fusion.baseline import BaselineConfig, run_baseline
+    from fusion.eval.baseline.registration import BaselineConfig, run_baseline
 
     subs, _ = _submaps(np.array([0.5, 0.0, 0.0]))
     subs[0].free = False

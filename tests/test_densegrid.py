@@ -8,8 +8,9 @@ import torch
 from scipy.interpolate import RegularGridInterpolator
 
 from fusion.config import FusionConfig
-from fusion.densegrid import DenseGrid, OctreeGrid, grid_size_bytes, make_dense_grid, octree_config
-from fusion.hashgrid import HashGrid
+from fusion.grids import make_grid
+from fusion.grids.dense import DenseGrid, OctreeGrid, grid_size_bytes, octree_config
+from fusion.grids.hash import HashGrid
 
 
 def _reference(grid: DenseGrid, level: int, x01: np.ndarray) -> np.ndarray:
@@ -77,7 +78,7 @@ def test_octree_matches_dense_near_data_and_is_smaller() -> None:
 
 
 def test_factory_and_octree_config() -> None:
-    grid = make_dense_grid(
+    grid = make_grid(
         "dense",
         (1, 1, 0.25),
         num_levels=2,
@@ -88,7 +89,7 @@ def test_factory_and_octree_config() -> None:
     )
     assert isinstance(grid, DenseGrid) and grid.out_dim == 4
     assert isinstance(
-        make_dense_grid("octree", (1, 1, 1), num_levels=2, base_resolution=4, max_resolution=8), OctreeGrid
+        make_grid("octree", (1, 1, 1), num_levels=2, base_resolution=4, max_resolution=8), OctreeGrid
     )
     cfg = octree_config(FusionConfig(), box_m=80.0)
     assert cfg.grid_type == "octree" and cfg.num_levels == 4 and cfg.features_per_level == 4

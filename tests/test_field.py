@@ -9,7 +9,7 @@ import torch
 
 from fusion.config import FusionConfig
 from fusion.field import SemanticSDFField
-from fusion.hashgrid import PRIMES, HashGrid
+from fusion.grids.hash import PRIMES, HashGrid
 from fusion.labels import NUM_CLASSES
 
 

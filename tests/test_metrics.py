@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion.metrics import (
+from fusion.eval.metrics import (
     PointSet,
     gauge_alignment,
     geometric_prf,

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.synth.fleet import FleetParams
-from fusion.synth.simulate import simulate
-from fusion.synth.world import WorldParams
+from fusion.eval.synth.fleet import FleetParams
+from fusion.eval.synth.simulate import simulate
+from fusion.eval.synth.world import WorldParams
 
 TILE = 32.0
 
@@ -77,7 +77,7 @@ def test_tiles_own_their_home_submaps_and_pin_borders(multi_tile_uploads: Path, 
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """Ownership logic with a stand-in fusion: free only in the home tile, held at the refined pose
     elsewhere, neighbours fused earlier pin the shared border."""
-    import fusion.optimize
+    import fusion.reconstruct
     from fusion.offline import fuse_directory
     from fusion.types import FusedMesh, FusionResult, Pose
 
@@ -89,7 +89,7 @@ def test_tiles_own_their_home_submaps_and_pin_borders(multi_tile_uploads: Path, 
         border = {side: {"tile": (tile.i, tile.j), "side": side} for side in ("x0", "x1", "y0", "y1")}
         return FusionResult(FusedMesh.empty(), shifted, {"points_per_s": 1.0}, {}, border)
 
-    monkeypatch.setattr(fusion.optimize, "fuse_tile", fake_fuse_tile)
+    monkeypatch.setattr(fusion.reconstruct, "fuse_tile", fake_fuse_tile)
     summary = fuse_directory(multi_tile_uploads, tmp_path, tiny_config(), tile_size=TILE)
     assert len(summary["tiles"]) > 1
     free_count: dict[str, int] = {}
@@ -135,14 +135,14 @@ def test_missing_meta_names_the_file(uploads: Path, tmp_path: Path) -> None:
 
 
 def test_cli_error_is_one_line_exit_2(tmp_path: Path) -> None:
-    proc = subprocess.run([sys.executable, "-m", "fusion.cli", "fuse", str(tmp_path / "nope"), "--out", str(tmp_path / "o")],
+    proc = subprocess.run([sys.executable, "-m", "fusion.eval.cli", "fuse", str(tmp_path / "nope"), "--out", str(tmp_path / "o")],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "nope" in proc.stderr
 
 
 def test_cli_module_does_not_import_torch() -> None:
-    code = "import sys, argparse, fusion.cli as c; p = argparse.ArgumentParser(); c.register(p.add_subparsers()); " \
+    code = "import sys, argparse, fusion.eval.cli as c; p = argparse.ArgumentParser(); c.register(p.add_subparsers()); " \
            "print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "False"

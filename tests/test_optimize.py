@@ -7,7 +7,7 @@ import pytest
 
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
-from fusion.optimize import fuse_tile
+from fusion.reconstruct import fuse_tile
 from fusion.types import Pose, ProgressEvent, TileSpec
 from tests.scene import tiny_config, two_sessions
 
@@ -93,7 +93,7 @@ def test_gps_prior_anchors_to_the_gps_fix_not_the_starting_pose() -> None:
 
     import torch
 
-    from fusion.optimize import build_problem
+    from fusion.reconstruct import build_problem
 
     subs, _ = two_sessions(offset=(0.5, -0.4, 0.1), yaw_deg=1.0)
     moved = Pose(np.array([0.3, 0.2, 0.0]), np.array([1.0, 0.0, 0.0, 0.0]))

@@ -16,7 +16,7 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from service.models import Submap, Tile, TileState
+from service.store.models import Submap, Tile, TileState
 from tests.production_support import (
     RedisServer,
     TcpProxy,

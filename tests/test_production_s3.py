@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from service.blobs import BlobNotFoundError, blob_store_from_url
-from service.blobs_s3 import BlobStoreError, S3BlobStore, parse_s3_url
+from service.store.blobs import BlobNotFoundError, blob_store_from_url
+from service.store.blobs.s3 import BlobStoreError, S3BlobStore, parse_s3_url
 
 pytestmark = pytest.mark.integration
 

@@ -16,7 +16,7 @@ import httpx
 import pytest
 from sqlalchemy import func, select
 
-from service.models import FusionJob, JobState, Submap, Tile, TileState, TileVersion
+from service.store.models import FusionJob, JobState, Submap, Tile, TileState, TileVersion
 from tests.production_support import Deployment, deployment, post_submap, small_mesh, submap_meta, wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]

@@ -15,11 +15,11 @@ import pytest
 from sqlalchemy import select, update
 
 from fusion.errors import FusionError
-from service import scheduler
-from service.models import FusionJob, JobState, Tile, TileVersion, utcnow
+from service import schedule as scheduler
+from service.store.models import FusionJob, JobState, Tile, TileVersion, utcnow
 from tests.worker_support import FakeFusion, api, make_settings, session_factory, upload
-from worker import jobs
-from worker.jobs import claim_job, run_fusion_job
+from worker import runner as jobs
+from worker.runner import claim_job, run_fusion_job
 
 
 @pytest.fixture
@@ -237,9 +237,9 @@ def test_sweeper_resends_jobs_whose_broker_message_was_lost(tmp_path: Any, monke
             assert scheduler.tick(db, last + timedelta(seconds=31), settings).scheduled == [(0, 0)]
         assert len(sent) == 1
         with factory() as db:
-            later = last + timedelta(seconds=31 + scheduler.DEFAULT_REQUEUE_S / 2)
+            later = last + timedelta(seconds=31 + settings.fuse_requeue_s / 2)
             assert scheduler.tick(db, later, settings).requeued_jobs == []
-            later = last + timedelta(seconds=32 + scheduler.DEFAULT_REQUEUE_S)
+            later = last + timedelta(seconds=32 + settings.fuse_requeue_s)
             assert scheduler.tick(db, later, settings).requeued_jobs == sent[:1]
         assert sent == [sent[0], sent[0]]
         with factory() as db:
@@ -250,8 +250,8 @@ def test_the_api_process_does_not_import_torch(tmp_path: Any) -> None:
     code = f"""
 import sys
 from fastapi.testclient import TestClient
-from service.app import create_app
-from service import scheduler
+from service.api.app import create_app
+from service import schedule as scheduler
 from tests.worker_support import make_settings, session_factory
 from pathlib import Path
 settings = make_settings(Path({str(tmp_path)!r}), broker_url="memory://")

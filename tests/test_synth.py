@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
+from fusion.eval.synth.fleet import FleetParams, perturb
+from fusion.eval.synth.simulate import load_ground_truth, simulate
+from fusion.eval.synth.world import World, WorldParams
 from fusion.labels import NUM_CLASSES
 from fusion.meshio import read_submap_ply
-from fusion.synth.fleet import FleetParams, perturb
-from fusion.synth.simulate import load_ground_truth, simulate
-from fusion.synth.world import World, WorldParams
 from fusion.types import Pose
 
 TINY_WORLD = {"core_max": (32.0, 32.0), "margin": 14.0, "ground_res": 0.5}
@@ -67,7 +67,7 @@ def test_submap_mesh_matches_truth_when_posed(sim) -> None:
     """Posed by its true pose, a submap lies on the ground-truth surface (up to vertex noise)."""
     from scipy.spatial import cKDTree
 
-    from fusion.metrics import sample_surface
+    from fusion.eval.metrics import sample_surface
 
     out, records = sim
     gt = load_ground_truth(out)

@@ -20,8 +20,8 @@ from typing import Any
 
 import pytest
 
-from service import scheduler
-from service.models import FusionJob
+from service import schedule as scheduler
+from service.store.models import FusionJob
 from tests.worker_support import api, make_settings, session_factory, upload, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -134,7 +134,7 @@ def test_celery_worker_fuses_jobs_sent_by_task_name(celery_env: dict[str, Any]) 
         scheduler.enqueue = original  # type: ignore[assignment]
     with factory() as db:
         enqueued_at = db.get(FusionJob, lost.id).enqueued_at
-        later = enqueued_at + timedelta(seconds=scheduler.requeue_after_s(settings) + 1)
+        later = enqueued_at + timedelta(seconds=settings.fuse_requeue_s + 1)
         assert scheduler.tick(db, later, settings).requeued_jobs == [lost.id]
     job = _wait_job(celery_env, lost.id)
     assert job["metrics"]["submaps"] == 3

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 
 from fusion.meshio import write_submap_ply
 from fusion.types import FusedMesh, FusionResult, Pose, SubmapInput, TileSpec
-from service.app import create_app
+from service.api.app import create_app
 from service.settings import Settings
 from tests.scene import street
 
@@ -99,7 +99,7 @@ def fake_mesh(tile: TileSpec) -> FusedMesh:
 
 
 class FakeFusion:
-    """Stands in for ``fusion.optimize.fuse_tile``: free poses move by ``shift`` metres along x.
+    """Stands in for ``fusion.reconstruct.fuse_tile``: free poses move by ``shift`` metres along x.
 
     ``during`` runs inside the "fusion" (e.g. an upload that arrives meanwhile); ``error`` is raised.
     """

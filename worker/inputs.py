@@ -20,9 +20,9 @@ from sqlalchemy.orm import Session
 from fusion.config import FusionConfig
 from fusion.meshio import MeshLimits, read_submap_ply
 from fusion.types import Pose, Sigma, SubmapInput, TileSpec
-from service.blobs import BlobStore
-from service.models import Submap, SubmapTile, TileVersion
 from service.settings import Settings
+from service.store.blobs import BlobStore
+from service.store.models import Submap, SubmapTile, TileVersion
 
 # Neighbour offsets by the side of *our* tile they touch: the left neighbour's "x1" plane is our "x0".
 NEIGHBOURS = {"x0": ((-1, 0), "x1"), "x1": ((1, 0), "x0"), "y0": ((0, -1), "y1"), "y1": ((0, 1), "y0")}

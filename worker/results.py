@@ -18,12 +18,12 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.meshio import write_fused_ply, write_glb
 from fusion.types import FusionResult
-from service.blobs import BlobStore
-from service.models import FusionJob, JobState, Submap, SubmapTile, Tile, TileState, TileVersion, utcnow
+from service.store.blobs import BlobStore
+from service.store.models import FusionJob, JobState, Submap, SubmapTile, Tile, TileState, TileVersion, utcnow
 from worker.inputs import TileInputs, pack_border, pose_change
 
 if TYPE_CHECKING:
-    from worker.jobs import Claim
+    from worker.runner import Claim
 
 log = logging.getLogger(__name__)
 

@@ -10,9 +10,10 @@ import logging
 
 from celery import Task
 
+from service.broker import TASK_FUSE_TILE
 from service.settings import get_settings
-from worker.celery_app import TASK_FUSE_TILE, app
-from worker.jobs import TransientJobError, run_fusion_job
+from worker.celery_app import app
+from worker.runner import TransientJobError, run_fusion_job
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,166 @@
+"""``fleetmap simulate | fuse | bench``: the fusion library's commands.
+
+``register(subparsers)`` adds them to the ``fleetmap`` CLI (``service/cli.py``). Everything heavy
+(torch, trimesh, the synthetic world) is imported inside the handlers, so importing this module stays
+cheap and torch-free for the API process. ``python -m fusion.eval.cli ...`` runs them standalone.
+Errors: one line on stderr, exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from typing import Any
+
+EXIT_ERROR = 2
+
+
+def _fail(message: str) -> int:
+    print(f"fleetmap: error: {message}", file=sys.stderr)
+    return EXIT_ERROR
+
+
+def _guard(handler: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """Turn expected failures (bad input, typed library errors) into one stderr line and exit code 2."""
+
+    def run(args: argparse.Namespace) -> int:
+        from fusion.errors import FusionLibraryError
+
+        try:
+            return handler(args)
+        except FusionLibraryError as exc:
+            return _fail(exc.message)
+        except (OSError, ValueError) as exc:
+            return _fail(str(exc))
+
+    run.__doc__ = handler.__doc__
+    return run
+
+
+@_guard
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Write a synthetic fleet's uploads (NAME.ply + NAME.json) and ground_truth/ to OUT."""
+    from fusion.eval.synth.fleet import FleetParams
+    from fusion.eval.synth.simulate import simulate
+
+    records = simulate(args.out, seed=args.seed, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg),
+                       fleet_params=FleetParams(vertex_noise_m=args.vertex_noise_m))
+    print(f"wrote {len(records)} submaps of {args.sessions} sessions to {args.out} (ground truth in ground_truth/)")
+    return 0
+
+
+@_guard
+def cmd_fuse(args: argparse.Namespace) -> int:
+    """Fuse a directory of submaps tile by tile into OUT/tiles/*.ply and OUT/poses.json."""
+    from tqdm import tqdm
+
+    from fusion.config import FusionConfig
+    from fusion.offline import fuse_directory
+    from fusion.types import ProgressEvent
+
+    bars: dict[str, Any] = {}
+
+    def progress(ev: ProgressEvent) -> None:
+        bar = bars.get(ev.stage)
+        if bar is None:
+            for old in bars.values():
+                old.close()
+            bars.clear()
+            bar = bars[ev.stage] = tqdm(total=ev.total, desc=ev.stage, unit="it", leave=False)
+        bar.total = ev.total
+        bar.update(ev.iteration - bar.n)
+        if ev.losses:
+            bar.set_postfix(loss=f"{ev.losses.get('total', float('nan')):.4f}")
+
+    try:
+        summary = fuse_directory(args.dir, args.out, FusionConfig.preset(args.preset), tile_size=args.tile_size,
+                                 origin=args.origin, progress=progress)
+    finally:
+        for bar in bars.values():
+            bar.close()
+    print(f"fused {summary['submaps']} submaps into {len(summary['metrics'])} tiles in {args.out}/tiles"
+          + (f" ({len(summary['skipped'])} tiles without data skipped)" if summary["skipped"] else ""))
+    return 0
+
+
+@_guard
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Simulate, fuse one tile, evaluate against the ground truth, print the table."""
+    from fusion.eval.ablations import run_extras, wants_extras
+    from fusion.eval.bench import ROWS, run_bench
+
+    if args.throughput:  # field training points/s micro-benchmark (python -m fusion.eval.perf has more knobs)
+        from fusion.eval.perf import run as run_throughput
+
+        return run_throughput(args)
+    if wants_extras(args):  # --baseline / --ablation: fusion.eval.ablations prints its own tables
+        run_extras(args)
+        return 0
+    rows = args.rows.split(",") if args.rows else None
+    unknown = [r for r in rows or [] if r not in ROWS]
+    if unknown:
+        return _fail(f"unknown bench rows {unknown} (known: {', '.join(ROWS)})")
+    run_bench(preset=args.preset, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg), seed=args.seed,
+              json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m)
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError("must be at least 1")
+    return value
+
+
+def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
+    """The synthetic fleet's options (``simulate``, ``bench``, ``python -m fusion.eval.ablations``)."""
+    p.add_argument("--seed", type=int, default=0, help="world and fleet seed (default 0)")
+    p.add_argument("--sessions", type=_positive_int, default=5, help="driving sessions (default 5)")
+    p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
+    p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
+    p.add_argument("--vertex-noise-m", type=float, default=0.025,
+                   help="submap vertex noise sigma, metres (default 0.025): how exact the vehicles' meshes are")
+
+
+def register(subparsers: Any) -> None:
+    """Add ``simulate``, ``fuse`` and ``bench`` to an argparse sub-parser collection; each sets ``func``."""
+    p = subparsers.add_parser("simulate", help="write a synthetic fleet's submap uploads and ground truth")
+    p.add_argument("out", help="output directory")
+    add_fleet_arguments(p)
+    p.set_defaults(func=cmd_simulate)
+
+    p = subparsers.add_parser("fuse", help="fuse a directory of submaps (NAME.ply + NAME.json) tile by tile")
+    p.add_argument("dir", help="directory with NAME.ply + NAME.json submaps")
+    p.add_argument("--out", required=True, help="output directory (tiles/*.ply, poses.json)")
+    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fusion configuration (default cpu)")
+    p.add_argument("--tile-size", type=float, default=64.0, help="tile size, metres (default 64)")
+    p.add_argument("--origin", default=None, help="geodetic map origin 'lat,lon,alt' for geodetic GPS fixes")
+    p.set_defaults(func=cmd_fuse)
+
+    p = subparsers.add_parser("bench", help="simulate, fuse one tile and evaluate against the ground truth")
+    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fusion configuration (default cpu)")
+    p.add_argument("--json", default=None, metavar="FILE", help="write every figure to FILE")
+    add_fleet_arguments(p)
+    p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")
+    p.add_argument("--tile-size", type=float, default=None,
+                   help="benchmark tile edge, metres (default: 64 for cpu, 128 for paper)")
+    p.add_argument("--throughput", action="store_true",
+                   help="only measure field training throughput (points/s forward+backward, fusion.eval.perf)")
+    from fusion.eval.ablations import add_bench_arguments
+
+    add_bench_arguments(p)  # --baseline, --ablation NAME|all, --plots DIR, Poisson sizes
+    p.set_defaults(func=cmd_bench)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Standalone entry point: ``python -m fusion.eval.cli {simulate,fuse,bench} ...``."""
+    parser = argparse.ArgumentParser(prog="fleetmap", description="fleetmap fusion commands")
+    sub = parser.add_subparsers(dest="command", required=True)
+    register(sub)
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""The :class:`fusion.eval.ablations.Harness` backed by :mod:`fusion.eval.bench`: the same simulated fleet, tile,
+offline fusion path (``fusion.offline.fuse_tiles``) and scoring (``bench.evaluate_mesh`` after
+``bench.gauge_transform``, ``bench.pose_figures``) as ``fleetmap bench``, so ablation rows compare with
+the bench table: ``geo_*``/``sem_f`` gauge-aligned, ``abs_geo_f``/``abs_sem_f`` in the map frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fusion.eval import bench
+from fusion.eval.ablations import Harness, Scores
+from fusion.types import FusedMesh, Pose, SubmapInput, TileSpec
+
+
+@dataclass
+class Scenario:
+    """One simulated fleet prepared for the bench tile; sizes in bytes, distances in km."""
+
+    ctx: bench.BenchContext
+    upload_bytes: int
+    driven_km: float
+    road_km_in_tile: float
+
+
+def _driven_km(records: list[Any], submap_length: float) -> float:
+    """Distance the sessions drove: gaps between consecutive submap origins plus one submap per session."""
+    by_session: dict[str, list[Any]] = {}
+    for r in records:
+        by_session.setdefault(r.session_id, []).append(r)
+    total = 0.0
+    for recs in by_session.values():
+        recs.sort(key=lambda r: r.seq)
+        t = np.array([r.pose_true.t for r in recs])
+        total += float(np.linalg.norm(np.diff(t, axis=0), axis=1).sum()) + submap_length
+    return total / 1000.0
+
+
+def _road_km(ctx: bench.BenchContext) -> float:
+    """Road length in the tile, km: road-labelled ground-truth area over the road width."""
+    from fusion.labels import LABEL_BY_NAME
+
+    gt = ctx.gt_all
+    road = int(np.sum(gt.labels == LABEL_BY_NAME["road"].id))
+    density = bench.metrics.DEFAULT_DENSITY  # points per m² of the sampled truth
+    width = 2.0 * float(ctx.truth.info.get("world", {}).get("road_half_width", 5.5))
+    return max(road / density / width / 1000.0, 1e-6)
+
+
+def bench_harness(args: argparse.Namespace) -> Harness:
+    """Harness with the bench's defaults taken from ``args`` (preset, sessions, seed, GPS noise)."""
+    from fusion.config import FusionConfig
+    from fusion.eval.synth.fleet import FleetParams
+    from fusion.eval.synth.simulate import simulate
+    from fusion.offline import fuse_tiles
+
+    config = FusionConfig.preset(getattr(args, "preset", "cpu"))
+    defaults = {
+        "sessions": getattr(args, "sessions", 5),
+        "seed": getattr(args, "seed", 0),
+        "gps_sigma_m": getattr(args, "gps_noise_m", 1.5),
+        "gps_sigma_deg": getattr(args, "gps_noise_deg", 1.5),
+        "submap_length": FleetParams().submap_length,
+        "vertex_noise_m": getattr(args, "vertex_noise_m", FleetParams().vertex_noise_m),
+    }
+    tile_key = bench.TILE
+
+    def do_simulate(**overrides: Any) -> Scenario:
+        p = {**defaults, **overrides}
+        with tempfile.TemporaryDirectory(prefix="fleetmap-ablation-") as tmp:
+            records = simulate(
+                tmp,
+                seed=p["seed"],
+                sessions=p["sessions"],
+                gps_noise=(p["gps_sigma_m"], p["gps_sigma_deg"]),
+                fleet_params=FleetParams(submap_length=p["submap_length"], vertex_noise_m=p["vertex_noise_m"]),
+            )
+            upload = sum(f.stat().st_size for f in Path(tmp).glob("*.ply"))
+            upload += sum(f.stat().st_size for f in Path(tmp).glob("*.json"))
+            ctx = bench.prepare(Path(tmp), config)
+        return Scenario(ctx, upload, _driven_km(records, p["submap_length"]), _road_km(ctx))
+
+    def fuse(s: Scenario, cfg: Any) -> tuple[FusedMesh, dict[str, Pose], float]:
+        t0 = time.perf_counter()
+        result = fuse_tiles(s.ctx.submaps, [tile_key], cfg, bench.TILE_SIZE)[tile_key]
+        return result.mesh, result.poses, time.perf_counter() - t0
+
+    def evaluate(s: Scenario, mesh: FusedMesh, poses: dict[str, Pose]) -> Scores:
+        """Reconstruction figures gauge-aligned like the bench's fused row (plain keys: the mesh moved by
+        ``bench.gauge_transform`` of the tile's submaps as posed by this fusion; submaps without a
+        refined pose count at GPS) and in the absolute map frame (``abs_geo_f``, ``abs_sem_f``)."""
+        out: Scores = {}
+        if len(mesh.faces):
+            figs = bench.evaluate_mesh(s.ctx, mesh, bench.gauge_transform(s.ctx, poses))
+            absolute = bench.evaluate_mesh(s.ctx, mesh)
+            out.update({k: float(figs[k]) for k in ("geo_p", "geo_r", "geo_f", "sem_f")})
+            out.update({f"abs_{k}": float(absolute[k]) for k in ("geo_f", "sem_f")})
+        else:
+            out.update({k: 0.0 for k in ("geo_p", "geo_r", "geo_f", "sem_f", "abs_geo_f", "abs_sem_f")})
+        full = {sm.input.id: sm.pose_gps for sm in s.ctx.submaps} | poses
+        pf = bench.pose_figures(s.ctx, full)
+        out.update(
+            {
+                "trans_m": float(pf.get("pose_trans_m", np.nan)),
+                "rot_deg": float(pf.get("pose_rot_deg", np.nan)),
+            }
+        )
+        return out
+
+    def submaps(s: Scenario) -> list[SubmapInput]:
+        """The tile's inputs as the offline path builds them: home submaps free, others held at GPS."""
+        return [replace(sm.input, free=sm.home == tile_key) for sm in s.ctx.submaps if tile_key in sm.tiles]
+
+    def field_mb_per_km(s: Scenario, cfg: Any) -> float:
+        """Stored neural-field size (grid + heads, float32) per km of road in the tile."""
+        import torch
+
+        from fusion.field import SemanticSDFField
+        from fusion.grids.dense import grid_size_bytes
+
+        m, size = cfg.tile_margin_m, bench.TILE_SIZE
+        z = s.ctx.gt_all.points[:, 2] if len(s.ctx.gt_all) else np.zeros(1)
+        lo = torch.tensor([-m, -m, float(z.min()) - cfg.slab_pad_m])
+        hi = torch.tensor(
+            [size + m, size + m, min(float(z.max()) + cfg.slab_pad_m, float(lo[2]) + cfg.slab_max_m)]
+        )
+        field = SemanticSDFField(cfg, lo, hi)
+        heads = sum(
+            p.numel() * p.element_size() for n, p in field.named_parameters() if not n.startswith("grid.")
+        )
+        grid = grid_size_bytes(field.grid)
+        if (
+            cfg.grid_type == "octree"
+        ):  # sized as allocated around the truth (the fusion allocates around the data)
+            pts = torch.tensor(s.ctx.gt_all.points, dtype=torch.float32)
+            pts -= torch.tensor([bench.TILE[0] * size, bench.TILE[1] * size, 0.0])
+            field.grid.allocate(field.norm(pts))  # type: ignore[operator]
+            grid = grid_size_bytes(field.grid)
+        return (grid + heads) / 1e6 / s.road_km_in_tile
+
+    return Harness(
+        simulate=do_simulate,
+        fuse=fuse,
+        evaluate=evaluate,
+        base_config=config,
+        submaps=submaps,
+        tile=lambda s: TileSpec(tile_key[0], tile_key[1], bench.TILE_SIZE),
+        uploaded_mb_per_km=lambda s: s.upload_bytes / 1e6 / max(s.driven_km, 1e-9),
+        field_mb_per_km=field_mb_per_km,
+    )

@@ -1,0 +1,283 @@
+"""Joint optimisation of a tile's neural semantic SDF and its submaps' poses (the paper's algorithm).
+
+Frames: inputs and outputs are in the map frame; internally everything lives in the *tile* frame, the
+map frame shifted by the tile's lower corner ``(i·S, j·S, 0)`` so float32 keeps precision far from the
+map origin.
+
+Per iteration: set the level of detail → pose the submaps → draw a batch (surface + space samples) →
+losses (SDF, normal, semantic, eikonal, confidence, odometry, GPS prior) → AdamW step → LR decay.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from fusion.config import FusionConfig
+from fusion.errors import FusionError
+from fusion.extract import extract_mesh
+from fusion.field import SemanticSDFField
+from fusion.losses import field_losses, gps_prior_loss, odometry_loss, total_loss
+from fusion.poses import PoseSet, odometry_consistent_start, odometry_pairs
+from fusion.runtime import resolve_device
+from fusion.sampling import (
+    SpaceBoxes,
+    SurfacePool,
+    consensus_targets,
+    sample_batch,
+    sample_surface_pool,
+    space_boxes,
+)
+from fusion.types import FusionResult, Pose, ProgressCallback, ProgressEvent, SubmapInput, TileSpec
+
+
+def overlapping(submaps: list[SubmapInput], tile: TileSpec, margin_m: float) -> list[SubmapInput]:
+    """Submaps whose initially posed bounding box meets the tile grown by ``margin_m`` (xy)."""
+    lo = np.asarray(tile.xy_min) - margin_m
+    hi = np.asarray(tile.xy_max) + margin_m
+    out = []
+    for sm in submaps:
+        v = sm.mesh.vertices
+        if len(v) == 0 or len(sm.mesh.faces) == 0:
+            continue
+        corners = np.array([[x, y, z] for x in (v[:, 0].min(), v[:, 0].max())
+                            for y in (v[:, 1].min(), v[:, 1].max()) for z in (v[:, 2].min(), v[:, 2].max())])
+        xy = sm.pose_init.apply(corners)[:, :2]
+        if np.all(xy.max(0) >= lo) and np.all(xy.min(0) <= hi):
+            out.append(sm)
+    return out
+
+
+@dataclass
+class TileProblem:
+    """Everything the optimiser needs for one tile, on the target device (tile frame)."""
+
+    submaps: list[SubmapInput]
+    origin: np.ndarray  # (3,) map-frame position of the tile frame's origin, metres
+    lo: torch.Tensor  # (3,) tile box, tile frame
+    hi: torch.Tensor  # (3,)
+    pool: SurfacePool
+    boxes: SpaceBoxes
+    box_lo_np: np.ndarray  # (M, 3) local space boxes (numpy, for consensus)
+    box_hi_np: np.ndarray
+    pool_session: np.ndarray  # (P,)
+    submap_session: np.ndarray  # (M,)
+    poses: PoseSet
+    init_tile: torch.Tensor  # (M, 4, 4) GPS poses (the prior's anchor), tile frame (float64)
+
+
+def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConfig, dev: torch.device) -> TileProblem:
+    chosen = overlapping(submaps, tile, config.tile_margin_m)
+    if not chosen:
+        raise FusionError(
+            f"no submap overlaps tile ({tile.i}, {tile.j}) (size {tile.size_m} m, margin {config.tile_margin_m} m)",
+            code="empty_tile",
+        )
+    origin = np.array([tile.xy_min[0], tile.xy_min[1], 0.0])
+    shift = np.eye(4)
+    shift[:3, 3] = -origin
+    init = [shift @ sm.pose_init.matrix() for sm in chosen]
+    gps = [shift @ (sm.pose_gps or sm.pose_init).matrix() for sm in chosen]
+    rng = np.random.default_rng(config.seed)
+    m = config.tile_margin_m
+    xy_lo, xy_hi = np.array([-m, -m]), np.array([tile.size_m + m, tile.size_m + m])
+    big = 1e6
+    pts, nrm, lab, own = sample_surface_pool(
+        chosen, init, np.array([*xy_lo, -big]), np.array([*xy_hi, big]), config.pool_points, rng,
+        config.class_balance, config.class_weight_max,
+    )
+    if len(pts) == 0:
+        raise FusionError(f"the submaps near tile ({tile.i}, {tile.j}) have no surface inside it", code="empty_tile")
+    mats = np.stack(init)[own]
+    z = np.einsum("nj,nj->n", mats[:, 2, :3], pts) + mats[:, 2, 3]
+    z_lo, z_hi = np.quantile(z, 0.001) - config.slab_pad_m, np.quantile(z, 0.999) + config.slab_pad_m
+    z_hi = min(z_hi, z_lo + config.slab_max_m)
+    keep = (z >= z_lo) & (z <= z_hi)
+    pts, nrm, lab, own = pts[keep], nrm[keep], lab[keep], own[keep]
+
+    centroids_local = [sm.mesh.vertices.mean(0) for sm in chosen]
+    start = odometry_consistent_start(chosen, init, centroids_local) if config.odom_init else init
+    centroids = np.stack([s[:3, :3] @ c + s[:3, 3] for s, c in zip(start, centroids_local, strict=True)])
+    blo, bhi = space_boxes(chosen, height_m=4.0, margin_m=1.0)
+    lo = torch.tensor([xy_lo[0], xy_lo[1], z_lo], dtype=torch.float32, device=dev)
+    hi = torch.tensor([xy_hi[0], xy_hi[1], z_hi], dtype=torch.float32, device=dev)
+    # space sampling weight: box footprint (m²) of each submap; a slab fraction is not needed as the
+    # samples outside the tile box are rejected
+    weight = np.prod(bhi[:, :2] - blo[:, :2], axis=1)
+    f32: dict[str, Any] = {"dtype": torch.float32, "device": dev}
+    sessions = {s: k for k, s in enumerate(sorted({sm.session_id for sm in chosen}))}
+    submap_session = np.array([sessions[sm.session_id] for sm in chosen])
+    pool = SurfacePool(
+        torch.tensor(pts, **f32), torch.tensor(nrm, **f32),
+        torch.tensor(lab, dtype=torch.long, device=dev), torch.tensor(own, dtype=torch.long, device=dev),
+        torch.ones(len(pts), **f32),
+    )
+    boxes = SpaceBoxes(torch.tensor(blo, **f32), torch.tensor(bhi, **f32), torch.tensor(weight, dtype=torch.float32))
+    free = torch.tensor([sm.free for sm in chosen])
+    poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids), free).to(dev)
+    return TileProblem(chosen, origin, lo, hi, pool, boxes, blo, bhi, submap_session[own], submap_session, poses,
+                       torch.tensor(np.stack(gps), dtype=torch.float64, device=dev))
+
+
+def update_consensus(problem: TileProblem, config: FusionConfig) -> float:
+    """Recompute the confidence targets of the surface pool from the current poses; returns their mean."""
+    with torch.no_grad():
+        poses = problem.poses()
+        pool_tile = (poses[problem.pool.submap][:, :3, :3].float() @ problem.pool.points[:, :, None])[:, :, 0]
+        pool_tile = pool_tile + poses[problem.pool.submap][:, :3, 3].float()
+    session = torch.as_tensor(problem.pool_session, device=pool_tile.device)
+    target = consensus_targets(pool_tile, session, config.consensus_radius_m, config.consensus_cover_m)
+    problem.pool.conf_target = target
+    return float(target.mean())
+
+
+def active_levels(it: int, config: FusionConfig) -> int:
+    """Progressive LOD: ``lod_start_levels`` at first, all levels after ``lod_full_fraction`` of training."""
+    span = max(1, int(config.lod_full_fraction * config.iterations))
+    extra = config.num_levels - config.lod_start_levels
+    return min(config.num_levels, config.lod_start_levels + (extra + 1) * it // span)
+
+
+def fuse_tile(
+    submaps: list[SubmapInput],
+    tile: TileSpec,
+    config: FusionConfig,
+    progress: ProgressCallback | None = None,
+    border_pins: dict | None = None,
+    device: str | None = None,
+) -> FusionResult:
+    """Fuse the submaps touching ``tile`` into a semantic mesh (map frame) and refine free submaps' poses.
+
+    Raises ``FusionError`` when no submap overlaps the tile (+ margin).
+    """
+    t_start = time.perf_counter()
+    dev = resolve_device(device or config.device)
+    torch.manual_seed(config.seed)
+    gen = torch.Generator().manual_seed(config.seed)
+    problem = build_problem(submaps, tile, config, dev)
+    field = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
+    allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
+    if callable(allocate):
+        allocate(field.norm(_posed_pool(problem)))
+    pairs, odom_rel, odom_ist, odom_isr = (t.to(dev) for t in odometry_pairs(problem.submaps))
+    gps_ist = torch.tensor([1 / max(sm.gps_sigma.trans_m, 1e-3) for sm in problem.submaps], dtype=torch.float64, device=dev)
+    gps_isr = torch.tensor([1 / np.radians(max(sm.gps_sigma.rot_deg, 1e-3)) for sm in problem.submaps],
+                           dtype=torch.float64, device=dev)
+    optimizer = torch.optim.AdamW([
+        {"params": list(field.parameters()), "lr": config.lr_field, "weight_decay": config.weight_decay},
+        {"params": [problem.poses.rho], "lr": config.lr_pose_trans, "weight_decay": 0.0},
+        {"params": [problem.poses.phi], "lr": config.lr_pose_rot, "weight_decay": 0.0},
+    ])
+    gamma = config.lr_decay_final ** (1.0 / max(config.iterations, 1))
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma)
+    consensus_iters = {int(f * config.iterations) for f in config.consensus_at} if config.consensus else set()
+    report_every = max(1, config.iterations // 50)
+    evaluated = 0
+    terms_f: dict[str, float] = {}
+    t_train = time.perf_counter()
+    for it in range(config.iterations):
+        if it in consensus_iters:
+            update_consensus(problem, config)
+        field.set_active_levels(active_levels(it, config))
+        poses64 = problem.poses()
+        batch = sample_batch(problem.pool, problem.boxes, poses64.float(), problem.lo, problem.hi,
+                             config.surface_samples, config.space_samples, config.sigma_s, gen)
+        terms, n_eval = field_losses(field, batch, config, gen)
+        terms["odom"] = odometry_loss(poses64, pairs, odom_rel, odom_ist, odom_isr).float()
+        terms["gps"] = gps_prior_loss(poses64, problem.init_tile, gps_ist, gps_isr).float()
+        loss = total_loss(terms, config)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if it < config.pose_warmup:
+            problem.poses.rho.grad = None
+            problem.poses.phi.grad = None
+        optimizer.step()
+        scheduler.step()
+        evaluated += n_eval
+        if progress is not None and (it % report_every == 0 or it == config.iterations - 1):
+            terms_f = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(loss.detach())}
+            progress(ProgressEvent(it + 1, config.iterations, terms_f, "train"))
+    terms_f = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(loss.detach())}
+    train_s = time.perf_counter() - t_train
+
+    t_extract = time.perf_counter()
+    field.eval()
+    field.set_active_levels(config.num_levels)
+    mesh, border, ex_stats = extract_mesh(
+        _sdf_fn(field, problem.origin, config.extract_chunk, dev),
+        _attr_fn(field, problem.origin, config.extract_chunk, dev),
+        tile,
+        (float(problem.lo[2]) + problem.origin[2], float(problem.hi[2]) + problem.origin[2]),
+        config.extract_voxel_m,
+        config.extract_block,
+        config.extract_band,
+        config.c_th,
+        border_pins,
+        face_labels=config.face_labels,
+        step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
+    )
+    extract_s = time.perf_counter() - t_extract
+
+    with torch.no_grad():
+        final = problem.poses().cpu().numpy()
+    to_map = np.eye(4)
+    to_map[:3, 3] = problem.origin
+    poses = {sm.id: Pose.from_matrix(to_map @ final[k]) for k, sm in enumerate(problem.submaps) if sm.free}
+    metrics = {
+        "losses": terms_f,
+        "iterations": config.iterations,
+        "duration_s": time.perf_counter() - t_start,
+        "duration_train_s": train_s,
+        "duration_extract_s": extract_s,
+        "points_per_s": evaluated / max(train_s, 1e-9),
+        "device": str(dev),
+        "num_submaps": len(problem.submaps),
+        "num_free": int(sum(sm.free for sm in problem.submaps)),
+        "pool_points": int(problem.pool.points.shape[0]),
+        "mean_conf_target": float(problem.pool.conf_target.mean()),
+        "extract": ex_stats,
+    }
+    return FusionResult(mesh, poses, metrics, config.to_dict(), border)
+
+
+def _posed_pool(problem: TileProblem) -> torch.Tensor:
+    """Surface pool ``(P, 3)`` at the current poses, tile frame (metres)."""
+    with torch.no_grad():
+        pose = problem.poses()[problem.pool.submap].float()  # (P, 4, 4)
+        return (pose[:, :3, :3] @ problem.pool.points[:, :, None])[:, :, 0] + pose[:, :3, 3]
+
+
+def _sdf_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torch.device):  # noqa: ANN202
+    """Map-frame numpy SDF query (no grad, chunked)."""
+
+    def fn(x_map: np.ndarray) -> np.ndarray:
+        out = np.empty(len(x_map), np.float64)
+        with torch.no_grad():
+            for a in range(0, len(x_map), chunk):
+                x = torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
+                out[a : a + chunk] = field.sdf(x).double().cpu().numpy()
+        return out
+
+    return fn
+
+
+def _attr_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torch.device):  # noqa: ANN202
+    """Map-frame numpy query of confidence (n,) and argmax label (n,)."""
+
+    def fn(x_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        conf = np.empty(len(x_map), np.float32)
+        labels = np.empty(len(x_map), np.int64)
+        with torch.no_grad():
+            for a in range(0, len(x_map), chunk):
+                x = torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
+                _, c_logit, logits = field(x)
+                assert logits is not None
+                conf[a : a + chunk] = torch.sigmoid(c_logit).cpu().numpy()
+                labels[a : a + chunk] = logits.argmax(-1).cpu().numpy()
+        return conf, labels
+
+    return fn

@@ -1,0 +1,209 @@
+"""RFC 9457 problem documents (``application/problem+json``) for every error the API answers.
+
+All mapping from exceptions to problems lives here: HTTP errors, request validation, the fusion
+library's typed errors, oversized bodies, an unavailable database, and anything unexpected
+(logged with its stack trace, answered without one).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Awaitable, Callable
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from fusion.errors import FusionLibraryError, MeshValidationError, PoseError
+from service.store.blobs import BlobStoreUnavailableError
+
+log = logging.getLogger(__name__)
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+TYPE_PREFIX = "urn:fleetmap:problem:"
+
+
+class Problem(BaseModel):
+    """An RFC 9457 problem document; ``code`` is a stable machine-readable reason."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str = Field(default="about:blank", examples=["urn:fleetmap:problem:too_many_faces"])
+    title: str = Field(examples=["Unprocessable Content"])
+    status: int = Field(examples=[422])
+    detail: str | None = Field(default=None, examples=["mesh has 3000000 faces, at most 2000000 allowed"])
+    code: str | None = Field(default=None, examples=["too_many_faces"])
+    errors: list[dict[str, Any]] | None = Field(
+        default=None, description="Validation failures: one entry per offending field"
+    )
+
+
+class ProblemError(Exception):
+    """Raise anywhere in the service to answer with a problem document."""
+
+    def __init__(
+        self,
+        status: int,
+        detail: str | None = None,
+        *,
+        code: str | None = None,
+        title: str | None = None,
+        errors: list[dict[str, Any]] | None = None,
+        headers: dict[str, str] | None = None,
+    ) -> None:
+        super().__init__(detail or code or str(status))
+        self.status = status
+        self.detail = detail
+        self.code = code
+        self.title = title
+        self.errors = errors
+        self.headers = headers
+
+
+class BodyTooLargeError(ProblemError):
+    """The request body crossed ``FLEETMAP_MAX_UPLOAD_BYTES`` (raised while streaming)."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(413, f"request body exceeds the limit of {limit} bytes", code="body_too_large")
+
+
+def problem_body(
+    status: int,
+    detail: str | None = None,
+    *,
+    code: str | None = None,
+    title: str | None = None,
+    errors: list[dict[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """The JSON object of a problem document."""
+    try:
+        default_title = HTTPStatus(status).phrase
+    except ValueError:
+        default_title = "Error"
+    body: dict[str, Any] = {
+        "type": f"{TYPE_PREFIX}{code}" if code else "about:blank",
+        "title": title or default_title,
+        "status": status,
+        "detail": detail,
+    }
+    if code:
+        body["code"] = code
+    if errors is not None:
+        body["errors"] = errors
+    return body
+
+
+def problem_response(
+    status: int,
+    detail: str | None = None,
+    *,
+    code: str | None = None,
+    title: str | None = None,
+    errors: list[dict[str, Any]] | None = None,
+    headers: dict[str, str] | None = None,
+) -> JSONResponse:
+    """A response carrying a problem document."""
+    body = problem_body(status, detail, code=code, title=title, errors=errors)
+    return JSONResponse(
+        jsonable_encoder(body), status_code=status, headers=headers, media_type=PROBLEM_MEDIA_TYPE
+    )
+
+
+def _validation_errors(raw: list[Any]) -> list[dict[str, Any]]:
+    """Pydantic errors without the offending input echoed back (it may be large or binary)."""
+    out = []
+    for err in raw:
+        entry = {"loc": list(err.get("loc", ())), "msg": str(err.get("msg", "")), "type": err.get("type", "")}
+        out.append(entry)
+    return out
+
+
+async def _handle_problem(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ProblemError)
+    return problem_response(
+        exc.status, exc.detail, code=exc.code, title=exc.title, errors=exc.errors, headers=exc.headers
+    )
+
+
+async def _handle_http(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    detail = exc.detail if isinstance(exc.detail, str) else None
+    return problem_response(exc.status_code, detail, headers=dict(exc.headers or {}))
+
+
+async def _handle_validation(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = _validation_errors(list(exc.errors()))
+    return problem_response(422, "the request is invalid", code="invalid_request", errors=errors)
+
+
+async def _handle_fusion(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, FusionLibraryError)
+    if isinstance(exc, MeshValidationError | PoseError):
+        return problem_response(422, exc.message, code=exc.code)
+    log.error("fusion library error: %s", exc.message)
+    return problem_response(500, exc.message, code=exc.code)
+
+
+def _unavailable(service: str, code: str) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
+    """A handler answering 503 (with ``Retry-After``) when ``service`` cannot be reached."""
+
+    async def handle(_request: Request, exc: Exception) -> JSONResponse:
+        log.error("%s unavailable: %s", service, exc.__class__.__name__, exc_info=exc)
+        return problem_response(
+            503, f"the {service} is unavailable, retry later", code=code, headers={"Retry-After": "5"}
+        )
+
+    return handle
+
+
+_handle_db_unavailable = _unavailable("database", "database_unavailable")
+_handle_blobs_unavailable = _unavailable("blob store", "blob_store_unavailable")
+
+
+async def _handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:
+    log.error("unhandled error", exc_info=exc)
+    return problem_response(500, "an unexpected error occurred; it has been logged", code="internal_error")
+
+
+def install_problem_handlers(app: FastAPI) -> None:
+    """Register every exception → problem mapping on ``app``."""
+    app.add_exception_handler(ProblemError, _handle_problem)
+    app.add_exception_handler(StarletteHTTPException, _handle_http)
+    app.add_exception_handler(RequestValidationError, _handle_validation)
+    app.add_exception_handler(FusionLibraryError, _handle_fusion)
+    app.add_exception_handler(OperationalError, _handle_db_unavailable)
+    app.add_exception_handler(PoolTimeoutError, _handle_db_unavailable)  # every pooled connection busy
+    app.add_exception_handler(BlobStoreUnavailableError, _handle_blobs_unavailable)
+    app.add_exception_handler(Exception, _handle_unexpected)
+
+
+_DESCRIPTIONS = {
+    304: "Not modified (the `If-None-Match` ETag matches)",
+    401: "Missing or invalid bearer token",
+    403: "The token's role may not do this",
+    404: "Not found",
+    409: "Conflicts with the stored state",
+    413: "Request body too large",
+    422: "Invalid input (validation failures are listed in `errors`)",
+    503: "A dependency (database, broker, blob store) is unavailable",
+}
+
+
+def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entries declaring problem documents for ``statuses``."""
+    out: dict[int | str, dict[str, Any]] = {}
+    for status in statuses:
+        out[status] = {
+            "model": Problem,
+            "description": _DESCRIPTIONS.get(status, HTTPStatus(status).phrase),
+            "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}},
+        }
+    return out

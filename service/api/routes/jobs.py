@@ -1,0 +1,41 @@
+"""``/v1/jobs/{id}``: one fusion job."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from service.api.deps import Operator, SessionDep
+from service.api.problems import ProblemError, problem_responses
+from service.api.schemas import JobPublic
+from service.store.models import FusionJob
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+
+def job_public(job: FusionJob) -> JobPublic:
+    return JobPublic(
+        id=job.id,
+        tile=[job.tile_i, job.tile_j],
+        state=job.state,  # type: ignore[arg-type]
+        trigger=job.trigger,  # type: ignore[arg-type]
+        progress=job.progress,
+        created_at=job.created_at,
+        started_at=job.started_at,
+        finished_at=job.finished_at,
+        error=job.error,
+        metrics=job.metrics,
+    )
+
+
+@router.get(
+    "/{job_id}",
+    operation_id="getJob",
+    response_model=JobPublic,
+    responses=problem_responses(401, 403, 404, 422),
+)
+def get_job(job_id: str, db: SessionDep, _principal: Operator) -> JobPublic:
+    """State and progress (0..1) of a fusion job."""
+    job = db.get(FusionJob, job_id)
+    if job is None:
+        raise ProblemError(404, f"no fusion job {job_id!r}", code="job_not_found")
+    return job_public(job)

@@ -1,0 +1,213 @@
+"""Wire models (requests and responses). Separate from the tables in ``service.store.models``.
+
+Poses map a submap's local frame into the target frame: ``p = R(q) · p_local + t``, metres,
+quaternion Hamilton ``[w, x, y, z]``.
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator
+
+from fusion.types import UNIT_QUATERNION_TOLERANCE
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Quat = Annotated[list[float], Field(min_length=4, max_length=4, description="[w, x, y, z], unit length")]
+TileIndex = Annotated[list[int], Field(min_length=2, max_length=2, description="[i, j]")]
+TileStateName = Literal["dirty", "queued", "fusing", "fused", "failed"]
+JobStateName = Literal["queued", "running", "succeeded", "failed"]
+
+
+def normalise_quaternion(q: list[float]) -> list[float]:
+    """Unit quaternion from one within 1e-3 of unit length; raises ValueError otherwise."""
+    if not all(math.isfinite(v) for v in q):
+        raise ValueError("quaternion components must be finite")
+    norm = math.sqrt(sum(v * v for v in q))
+    if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
+        raise ValueError(
+            f"quaternion must be unit length within {UNIT_QUATERNION_TOLERANCE} (norm {norm:.6f})"
+        )
+    return [v / norm for v in q]
+
+
+class Pose(BaseModel):
+    """Rigid transform local → target frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    t: Vec3 = Field(description="Translation, metres")
+    q: Quat
+
+    @field_validator("t")
+    @classmethod
+    def _finite(cls, t: list[float]) -> list[float]:
+        if not all(math.isfinite(v) for v in t):
+            raise ValueError("translation components must be finite")
+        return t
+
+    @field_validator("q")
+    @classmethod
+    def _unit(cls, q: list[float]) -> list[float]:
+        return normalise_quaternion(q)
+
+
+class GpsPose(BaseModel):
+    """A GPS pose given directly in the map frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    pose: Pose
+
+
+class GpsGeodetic(BaseModel):
+    """A GPS pose given geodetically (WGS84 degrees, metres); ``q`` relative to local ENU axes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    lat: float = Field(ge=-90, le=90)
+    lon: float = Field(ge=-180, le=180)
+    alt: float = Field(allow_inf_nan=False)
+    q: Quat
+
+    @field_validator("q")
+    @classmethod
+    def _unit(cls, q: list[float]) -> list[float]:
+        return normalise_quaternion(q)
+
+
+class Sigma(BaseModel):
+    """1-sigma pose uncertainty."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    trans_m: float = Field(gt=0, allow_inf_nan=False, description="Translation, metres")
+    rot_deg: float = Field(gt=0, allow_inf_nan=False, description="Rotation, degrees")
+
+
+class SubmapMeta(BaseModel):
+    """The ``meta`` part of a submap upload."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    agent_id: str = Field(min_length=1, max_length=200, examples=["veh-042"])
+    session_id: str = Field(min_length=1, max_length=255, examples=["veh-042/2026-11-24T08:00:00Z"])
+    seq: int = Field(ge=0, lt=2**31, examples=[17])
+    captured_at: AwareDatetime
+    gps: GpsPose | GpsGeodetic
+    gps_sigma: Sigma = Sigma(trans_m=2.0, rot_deg=2.0)
+    odometry: Pose
+    odometry_sigma: Sigma = Sigma(trans_m=0.05, rot_deg=0.5)
+
+
+class SubmapCreated(BaseModel):
+    """Answer to an upload (201 stored, 200 idempotent retry)."""
+
+    id: str
+    session_id: str
+    seq: int
+    tiles: list[TileIndex]
+    sha256: str = Field(description="sha256 of the uploaded mesh bytes")
+
+
+class SubmapPublic(BaseModel):
+    """A stored submap: its (normalised) meta plus poses and tiles."""
+
+    id: str
+    agent_id: str
+    session_id: str
+    seq: int
+    captured_at: datetime
+    gps: dict[str, Any] = Field(description="As uploaded (quaternion normalised)")
+    gps_sigma: Sigma
+    odometry: Pose
+    odometry_sigma: Sigma
+    pose_gps: Pose = Field(description="GPS pose in the map frame")
+    pose_refined: Pose | None = Field(description="Map-frame pose refined by fusion; null until then")
+    refined_at: datetime | None
+    tiles: list[TileIndex]
+    home_tile: TileIndex
+    sha256: str = Field(description="sha256 of the mesh bytes")
+    face_count: int
+    created_at: datetime
+
+
+class SessionPose(BaseModel):
+    seq: int
+    id: str
+    pose_gps: Pose
+    pose_refined: Pose | None
+
+
+class Label(BaseModel):
+    id: int
+    name: str
+    color: Annotated[list[int], Field(min_length=3, max_length=3, description="[r, g, b], 0..255")]
+
+
+class Origin(BaseModel):
+    lat: float
+    lon: float
+    alt: float
+
+
+class Capabilities(BaseModel):
+    max_upload_bytes: int
+    max_faces: int
+    max_coordinate_m: float
+    tile_size_m: float
+    origin: Origin
+    labels_url: str
+
+
+class TileLinks(BaseModel):
+    self: str
+    mesh: str
+
+
+class TilePublic(BaseModel):
+    i: int
+    j: int
+    state: TileStateName
+    submaps: int = Field(description="Number of submaps touching the tile")
+    sessions: int = Field(description="Number of distinct sessions among them")
+    version: int = Field(description="Successful fusions so far (0: never fused)")
+    fused_at: datetime | None
+    progress: float = Field(ge=0, le=1)
+    last_error: str | None
+    job_id: str | None
+    links: TileLinks
+
+
+class TilePage(BaseModel):
+    items: list[TilePublic]
+    next_cursor: str | None = Field(description="Opaque; pass as `cursor` for the next page, null at the end")
+
+
+class FuseAccepted(BaseModel):
+    job_id: str
+    tile: TileIndex
+
+
+class JobPublic(BaseModel):
+    id: str
+    tile: TileIndex
+    state: JobStateName
+    trigger: Literal["auto", "operator"]
+    progress: float
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    error: str | None
+    metrics: dict[str, Any] | None
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class Readiness(BaseModel):
+    status: Literal["ok"] = "ok"
+    checks: dict[str, str] = Field(description="Component → 'ok' or 'skipped'")

@@ -1,0 +1,371 @@
+"""Fusion scheduling: which tile is fused when, and the sweeper that repairs lost work.
+
+The tiles table is the source of truth (DESIGN.md, "Semantics of state"). Every transition here is
+one conditional ``UPDATE … WHERE <expected state>``: its rowcount says whether *this* process made it,
+so several API processes may tick at once on PostgreSQL or SQLite without double-scheduling.
+
+- A ``dirty`` tile (or a ``failed`` one that received uploads after its failed attempt started) is
+  queued once it has been quiet for ``FLEETMAP_FUSE_DEBOUNCE_S`` since its last upload, or has waited
+  ``FLEETMAP_FUSE_MAX_WAIT_S`` since it became dirty: a burst of uploads gives one fusion.
+- The sweeper re-enqueues jobs that stayed ``queued`` too long (a lost broker message) and puts
+  ``fusing`` tiles whose lease expired (a dead worker) back to ``queued``.
+
+This module is torch-free: with a broker, jobs are sent by task *name*; without one (embedded
+deployment) the embedded worker polls the database for queued jobs, so enqueueing is a no-op.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+from functools import lru_cache
+from typing import Any
+
+from sqlalchemy import and_, exists, or_, select, update
+from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.sql.elements import ColumnElement
+
+from service.broker import TASK_FUSE_TILE
+from service.settings import Settings, get_settings
+from service.store.models import FusionJob, JobState, JobTrigger, Submap, Tile, TileState, new_id, utcnow
+
+log = logging.getLogger(__name__)
+
+ACTIVE_JOB_STATES = (JobState.queued.value, JobState.running.value)
+BUSY_TILE_STATES = (TileState.queued.value, TileState.fusing.value)
+# A job whose worker died this many times is failed instead of being retried forever (poison input).
+MAX_ATTEMPTS = 3
+TICK_BATCH = 200
+
+
+@dataclass
+class TickReport:
+    """What one scheduler tick did (for logs and tests)."""
+
+    scheduled: list[tuple[int, int]] = field(default_factory=list)
+    requeued_jobs: list[str] = field(default_factory=list)
+    reclaimed_tiles: list[tuple[int, int]] = field(default_factory=list)
+    failed_jobs: list[str] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------------------------- enqueue
+
+
+@lru_cache(maxsize=4)
+def _producer(broker_url: str, queue: str) -> Any:
+    # Lazy: the Celery app is built only when a broker is configured.
+    from service.broker import make_celery
+
+    return make_celery(get_settings().model_copy(update={"broker_url": broker_url, "fusion_queue": queue}))
+
+
+def enqueue(job_id: str, settings: Settings | None = None) -> bool:
+    """Hand job ``job_id`` to the workers; True when a broker message was sent.
+
+    Embedded deployments (no broker) send nothing: the embedded worker polls for queued jobs. A broker
+    error is logged, not raised: the job row is committed and the sweeper sends it again later.
+    """
+    settings = settings or get_settings()
+    if settings.embedded:
+        return False
+    try:
+        _producer(settings.broker_url, settings.fusion_queue).send_task(
+            TASK_FUSE_TILE,
+            args=[job_id],
+            queue=settings.fusion_queue,
+            retry=True,
+            retry_policy={"max_retries": 2, "interval_start": 0.2, "interval_step": 0.5},
+        )
+    except Exception as exc:  # broker unreachable: the sweeper retries, the API must not fail
+        log.warning("could not enqueue fusion job %s (%s); the sweeper will retry", job_id, exc)
+        return False
+    return True
+
+
+# ------------------------------------------------------------------------------------------ scheduling
+
+
+def _due(now: datetime, settings: Settings) -> ColumnElement[bool]:
+    """Tiles that need a fusion and are quiet (debounce) or have waited long enough (max wait)."""
+    failed_job_generation = select(FusionJob.generation).where(FusionJob.id == Tile.job_id).scalar_subquery()
+    needs_fusion = or_(
+        Tile.state == TileState.dirty.value,
+        and_(
+            Tile.state == TileState.failed.value,
+            or_(Tile.job_id.is_(None), Tile.dirty_generation > failed_job_generation),
+        ),
+    )
+    quiet = or_(
+        Tile.last_upload_at.is_(None),
+        Tile.last_upload_at <= now - timedelta(seconds=settings.fuse_debounce_s),
+        Tile.dirty_since <= now - timedelta(seconds=settings.fuse_max_wait_s),
+    )
+    return and_(needs_fusion, quiet)
+
+
+def _queue_tile(
+    db: Session, i: int, j: int, condition: ColumnElement[bool], trigger: str, now: datetime
+) -> FusionJob | None:
+    """Move tile (i, j) to ``queued`` with a new job if ``condition`` still holds; commit. None if not."""
+    job_id = new_id()
+    result = db.execute(
+        update(Tile)
+        .where(Tile.i == i, Tile.j == j, condition)
+        .values(state=TileState.queued.value, job_id=job_id, progress=0.0, updated_at=now)
+        .execution_options(synchronize_session=False)
+    )
+    if result.rowcount != 1:  # type: ignore[attr-defined]
+        db.rollback()
+        return None
+    generation = db.execute(select(Tile.dirty_generation).where(Tile.i == i, Tile.j == j)).scalar_one()
+    job = FusionJob(
+        id=job_id,
+        tile_i=i,
+        tile_j=j,
+        state=JobState.queued.value,
+        trigger=trigger,
+        generation=generation,
+        created_at=now,
+        enqueued_at=now,
+    )
+    db.add(job)
+    db.commit()
+    return job
+
+
+def owns_submaps(i_column: Any, j_column: Any) -> ColumnElement[bool]:
+    """Whether the tile is the home tile of some submap. Such tiles are fused first: they refine the
+    poses that their neighbours hold fixed, so the neighbours then fuse once, with refined poses."""
+    return exists().where(Submap.home_i == i_column, Submap.home_j == j_column)
+
+
+def schedule_due_tiles(db: Session, now: datetime, settings: Settings) -> list[FusionJob]:
+    """Queue every due tile (one conditional UPDATE each); returns the jobs this process created."""
+    condition = _due(now, settings)
+    candidates = db.execute(
+        select(Tile.i, Tile.j)
+        .where(condition)
+        .order_by(owns_submaps(Tile.i, Tile.j).desc(), Tile.dirty_since)
+        .limit(TICK_BATCH)
+    ).all()
+    db.rollback()  # end the read transaction before writing (SQLite: no stale snapshot)
+    jobs = []
+    for i, j in candidates:
+        job = _queue_tile(db, i, j, condition, JobTrigger.auto.value, now)
+        if job is not None:
+            log.info("tile (%d, %d) queued for fusion, job %s", i, j, job.id)
+            jobs.append(job)
+    return jobs
+
+
+def request_fusion(
+    db: Session,
+    i: int,
+    j: int,
+    trigger: str = JobTrigger.operator.value,
+    *,
+    settings: Settings | None = None,
+    now: datetime | None = None,
+) -> FusionJob:
+    """Queue a (re-)fusion of tile (i, j) and return its job, or the job already queued or running.
+
+    Raises ``LookupError`` if the tile does not exist. Commits.
+    """
+    settings = settings or get_settings()
+    now = now or utcnow()
+    for _ in range(3):
+        job = _queue_tile(db, i, j, Tile.state.not_in(BUSY_TILE_STATES), trigger, now)
+        if job is not None:
+            enqueue(job.id, settings)
+            return job
+        tile = db.get(Tile, (i, j))
+        if tile is None:
+            raise LookupError(f"tile ({i}, {j}) does not exist")
+        active = db.execute(
+            select(FusionJob)
+            .where(FusionJob.tile_i == i, FusionJob.tile_j == j, FusionJob.state.in_(ACTIVE_JOB_STATES))
+            .order_by(FusionJob.created_at.desc())
+            .limit(1)
+        ).scalar_one_or_none()
+        if active is not None:
+            db.commit()
+            return active
+        # Busy tile without an active job (inconsistent row): release it and try again.
+        db.execute(
+            update(Tile)
+            .where(Tile.i == i, Tile.j == j, Tile.state.in_(BUSY_TILE_STATES))
+            .values(state=TileState.dirty.value, lease_owner=None, lease_until=None, updated_at=now)
+        )
+        db.commit()
+    raise RuntimeError(f"could not queue tile ({i}, {j}): it keeps changing state")
+
+
+# --------------------------------------------------------------------------------------------- sweeper
+
+
+def _requeue_lost_messages(db: Session, now: datetime, settings: Settings) -> list[str]:
+    """Jobs queued for longer than the requeue interval are sent again (broker deployments only)."""
+    if settings.embedded:
+        return []
+    cutoff = now - timedelta(seconds=settings.fuse_requeue_s)
+    stale = or_(FusionJob.enqueued_at.is_(None), FusionJob.enqueued_at < cutoff)
+    waiting = and_(FusionJob.state == JobState.queued.value, stale)
+    ids = db.execute(select(FusionJob.id).where(waiting).limit(TICK_BATCH)).scalars().all()
+    db.rollback()
+    sent = []
+    for job_id in ids:
+        result = db.execute(update(FusionJob).where(FusionJob.id == job_id, waiting).values(enqueued_at=now))
+        db.commit()
+        if result.rowcount == 1:  # type: ignore[attr-defined]
+            log.warning("fusion job %s was not picked up in time; enqueueing it again", job_id)
+            enqueue(job_id, settings)
+            sent.append(job_id)
+    return sent
+
+
+def _reclaim_expired_leases(db: Session, now: datetime, settings: Settings, report: TickReport) -> None:
+    """``fusing`` tiles whose lease expired (dead worker) go back to ``queued``; their job is re-run.
+
+    A job whose worker died ``MAX_ATTEMPTS`` times is failed instead (the tile keeps serving its
+    previous version).
+    """
+    expired = and_(
+        Tile.state == TileState.fusing.value,
+        or_(Tile.lease_until.is_(None), Tile.lease_until < now),
+    )
+    tiles = db.execute(select(Tile.i, Tile.j, Tile.job_id).where(expired).limit(TICK_BATCH)).all()
+    db.rollback()
+    for i, j, job_id in tiles:
+        job = db.get(FusionJob, job_id) if job_id else None
+        give_up = job is None or job.attempts >= MAX_ATTEMPTS
+        error = f"fusion worker lost {job.attempts if job else 0} time(s); giving up" if give_up else None
+        new_state = TileState.failed.value if give_up else TileState.queued.value
+        result = db.execute(
+            update(Tile)
+            .where(Tile.i == i, Tile.j == j, Tile.job_id == job_id, expired)
+            .values(
+                state=new_state,
+                lease_owner=None,
+                lease_until=None,
+                progress=0.0,
+                last_error=error,
+                updated_at=now,
+            )
+            .execution_options(synchronize_session=False)
+        )
+        if result.rowcount != 1:  # type: ignore[attr-defined]
+            db.rollback()
+            continue
+        if job is not None:
+            if give_up:
+                job.state, job.error, job.finished_at = JobState.failed.value, error, now
+            else:
+                job.state, job.progress, job.enqueued_at = JobState.queued.value, 0.0, now
+        db.commit()
+        report.reclaimed_tiles.append((i, j))
+        if give_up:
+            log.error("tile (%d, %d): %s", i, j, error)
+            if job is not None:
+                report.failed_jobs.append(job.id)
+        else:
+            assert job is not None
+            log.warning("tile (%d, %d): lease of job %s expired; re-running it", i, j, job.id)
+            enqueue(job.id, settings)
+            report.requeued_jobs.append(job.id)
+
+
+def tick(db: Session, now: datetime | None = None, settings: Settings | None = None) -> TickReport:
+    """One scheduler pass: queue due tiles, then sweep lost messages and expired leases. Commits."""
+    settings = settings or get_settings()
+    now = now or utcnow()
+    report = TickReport()
+    _reclaim_expired_leases(db, now, settings, report)
+    report.requeued_jobs.extend(_requeue_lost_messages(db, now, settings))
+    for job in schedule_due_tiles(db, now, settings):
+        enqueue(job.id, settings)
+        report.scheduled.append((job.tile_i, job.tile_j))
+    return report
+
+
+# ------------------------------------------------------------------------------------------ background
+
+
+class BackgroundScheduler:
+    """Runs :func:`tick` every ``FLEETMAP_SCHEDULER_INTERVAL_S`` in a daemon thread.
+
+    In the embedded deployment it also owns the embedded worker child process (which imports torch,
+    so the API process never does).
+    """
+
+    def __init__(self, session_factory: sessionmaker[Session], settings: Settings, spawn_worker: bool):
+        self.session_factory = session_factory
+        self.settings = settings
+        self.spawn_worker = spawn_worker and settings.embedded
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._worker: Any = None
+
+    def start(self) -> BackgroundScheduler:
+        if self.spawn_worker:
+            from service.embedded import EmbeddedWorkerProcess
+
+            self._worker = EmbeddedWorkerProcess(self.settings)
+            self._worker.start()
+        self._thread = threading.Thread(target=self._run, name="fleetmap-scheduler", daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                with self.session_factory() as db:
+                    tick(db, utcnow(), self.settings)
+            except Exception:  # keep ticking: the next pass repairs whatever this one missed
+                log.exception("scheduler tick failed")
+            if self._worker is not None:
+                self._worker.ensure_running()
+            self._stop.wait(self.settings.scheduler_interval_s)
+
+    def stop(self, timeout: float = 30.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        if self._worker is not None:
+            self._worker.stop(timeout)
+
+
+def start_background(
+    app: Any = None,
+    *,
+    settings: Settings | None = None,
+    session_factory: sessionmaker[Session] | None = None,
+    spawn_worker: bool = True,
+) -> BackgroundScheduler:
+    """Start the scheduler thread (and the embedded worker when there is no broker).
+
+    Settings and the session factory come from the arguments, else from ``app.state.settings`` /
+    ``app.state.session_factory``, else from the environment. :func:`stop_background` (called by the
+    app's lifespan on shutdown) stops it.
+    """
+    state = getattr(app, "state", None)
+    settings = settings or getattr(state, "settings", None) or get_settings()
+    if session_factory is None:
+        session_factory = getattr(state, "session_factory", None) or getattr(state, "sessionmaker", None)
+    if session_factory is None:
+        from service.store.db import engine_from_settings, make_sessionmaker
+
+        session_factory = make_sessionmaker(engine_from_settings(settings))
+    background = BackgroundScheduler(session_factory, settings, spawn_worker).start()
+    if state is not None:
+        state.scheduler = background
+    return background
+
+
+def stop_background(app: Any) -> None:
+    """Stop what :func:`start_background` started for ``app`` (the embedded worker's job is requeued)."""
+    background = getattr(getattr(app, "state", None), "scheduler", None)
+    if background is not None:
+        background.stop()
+        app.state.scheduler = None
