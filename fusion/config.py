@@ -38,6 +38,9 @@ from typing import Any
 GRID_TYPES = ("hash", "dense", "octree")
 
 
+PRESETS = ("cpu", "paper", "tiny")
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     # feature grid
@@ -108,9 +111,28 @@ class FusionConfig:
 
     @staticmethod
     def preset(name: str = "cpu") -> FusionConfig:
-        """``"cpu"``: 64 m tiles on 2 CPU cores in about a minute; ``"paper"``: the paper's sizes (GPU)."""
+        """``"cpu"``: 64 m tiles on 2 CPU cores in about a minute; ``"paper"``: the paper's sizes (GPU);
+        ``"tiny"``: a few iterations and a coarse lattice, for tests and smoke runs (seconds on 2 cores)."""
         if name == "cpu":
             return FusionConfig()
+        if name == "tiny":
+            return FusionConfig(
+                iterations=25,
+                pose_warmup=5,
+                surface_samples=512,
+                space_samples=512,
+                num_levels=6,
+                lod_start_levels=4,
+                log2_table_size=14,
+                max_resolution=64,
+                geo_hidden=32,
+                sem_hidden=32,
+                pool_points=20_000,
+                consensus=False,
+                c_th=0.5,  # a few iterations leave confidences lower than a full schedule does
+                extract_voxel_m=1.0,
+                tile_margin_m=2.0,
+            )
         if name == "paper":
             return FusionConfig(
                 num_levels=16,
@@ -130,7 +152,7 @@ class FusionConfig:
                 extract_block=4,
                 extract_chunk=262_144,
             )
-        raise ValueError(f"unknown preset {name!r} (cpu, paper)")
+        raise ValueError(f"unknown preset {name!r} ({', '.join(PRESETS)})")
 
     def with_(self, **changes: Any) -> FusionConfig:
         return replace(self, **changes)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from skimage.measure import marching_cubes
 
+from fusion.tiles import lattice_range
 from fusion.types import FusedMesh, TileSpec
 
 SdfFn = Callable[[np.ndarray], np.ndarray]  # (n, 3) map-frame metres → (n,) signed distance
@@ -41,10 +42,9 @@ class Lattice:
 
 def tile_lattice(tile: TileSpec, z_min: float, z_max: float, voxel_m: float) -> Lattice:
     """Lattice of a tile (map frame): lattice points inside the closed tile square × [z_min, z_max]."""
-    tol = 1e-6
-    lo = [math.ceil(c / voxel_m - tol) for c in tile.xy_min]
-    hi = [math.floor(c / voxel_m + tol) for c in tile.xy_max]
-    return Lattice(voxel_m, (lo[0], lo[1], math.floor(z_min / voxel_m)), (hi[0], hi[1], math.ceil(z_max / voxel_m)))
+    (x0, x1), (y0, y1) = (lattice_range(lo, hi, voxel_m, inside=True) for lo, hi in zip(tile.xy_min, tile.xy_max, strict=True))
+    z0, z1 = lattice_range(z_min, z_max, voxel_m)
+    return Lattice(voxel_m, (x0, y0, z0), (x1, y1, z1))
 
 
 def _eval(fn: SdfFn, k: np.ndarray, voxel_m: float) -> np.ndarray:

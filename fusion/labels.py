@@ -32,7 +32,3 @@ NUM_CLASSES = len(LABELS)
 LABEL_BY_NAME = {label.name: label for label in LABELS}
 COLOR_TO_LABEL = {label.color: label.id for label in LABELS}
 
-
-def label_colors() -> list[tuple[int, int, int]]:
-    """Colour per label id, indexable by id."""
-    return [label.color for label in LABELS]

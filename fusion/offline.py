@@ -26,8 +26,6 @@ if TYPE_CHECKING:
     from fusion.config import FusionConfig
 
 DEFAULT_ORIGIN = "48.2620,11.6670,480.0"
-OPPOSITE = {"x0": "x1", "x1": "x0", "y0": "y1", "y1": "y0"}
-NEIGHBOUR = {"x0": (-1, 0), "x1": (1, 0), "y0": (0, -1), "y1": (0, 1)}
 
 
 class OfflineInputError(FusionLibraryError):
@@ -121,9 +119,7 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
             else:
                 pose = refined.get(s.input.id, s.pose_gps)
                 inputs.append(replace(s.input, pose_init=pose, free=s.home == key))
-        pins = {side: results[(key[0] + di, key[1] + dj)].border[OPPOSITE[side]]
-                for side, (di, dj) in NEIGHBOUR.items()
-                if (key[0] + di, key[1] + dj) in results and OPPOSITE[side] in results[(key[0] + di, key[1] + dj)].border}
+        pins = tiles.border_pins(*key, lambda k: results[k].border if k in results else None)
 
         def tile_progress(ev: ProgressEvent, n: int = n, key: tuple[int, int] = key) -> None:
             stage = f"tile {key[0]}_{key[1]} ({n + 1}/{len(tile_keys)}) {ev.stage}"

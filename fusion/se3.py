@@ -131,11 +131,6 @@ def apply(m: Tensor, points: Tensor) -> Tensor:
     return points @ m[..., :3, :3].transpose(-1, -2) + m[..., None, :3, 3]
 
 
-def rotate(m: Tensor, vectors: Tensor) -> Tensor:
-    """Rotate direction vectors ``(..., n, 3)`` by the rotation of ``(..., 4, 4)``."""
-    return vectors @ m[..., :3, :3].transpose(-1, -2)
-
-
 def quat_to_matrix(q: Tensor) -> Tensor:
     """Rotation matrices ``(..., 3, 3)`` of quaternions ``(..., 4)`` ``[w, x, y, z]`` (normalised here)."""
     q = q / q.norm(dim=-1, keepdim=True)

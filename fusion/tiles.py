@@ -7,7 +7,8 @@ metres); ``i`` and ``j`` may be negative. A point exactly on the border ``x = k�
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -111,21 +112,34 @@ def _snap(value: float) -> float:
     return float(nearest) if abs(value - nearest) <= _SNAP * max(1.0, abs(value)) else value
 
 
-def lattice_range(lo: float, hi: float, step: float) -> tuple[int, int]:
-    """Integer range [k0, k1] such that the multiples ``k·step`` cover [lo, hi] (inclusive).
+def lattice_range(lo: float, hi: float, step: float, *, inside: bool = False) -> tuple[int, int]:
+    """The global extraction lattice (multiples ``k·step``, metres, map frame) along one axis: the
+    integer range [k0, k1] whose points cover [lo, hi], or with ``inside`` the points within it.
 
     ``lo``/``step`` and ``hi``/``step`` within floating-point noise of an integer count as that
-    integer, so a tile border that is a multiple of ``step`` is a lattice point of both tiles."""
+    integer, so a tile border that is a multiple of ``step`` is a lattice point of both tiles and
+    neighbouring tiles compute bit-identical coordinates ``k·step`` there."""
     if not (math.isfinite(step) and step > 0):
         raise ValueError(f"lattice step must be a positive number of metres, not {step!r}")
     if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
         raise ValueError(f"lattice bounds must be finite with lo <= hi, not [{lo}, {hi}]")
-    return math.floor(_snap(lo / step)), math.ceil(_snap(hi / step))
+    a, b = _snap(lo / step), _snap(hi / step)
+    return (math.ceil(a), math.floor(b)) if inside else (math.floor(a), math.ceil(b))
 
 
-def lattice_axis(lo: float, hi: float, step: float) -> np.ndarray:
-    """Global extraction lattice along one axis: float64 ``k·step`` for k = k0..k1 (see
-    ``lattice_range``; ``k0 = round(axis[0] / step)``). Computed from integer k, so neighbouring
-    tiles produce bit-identical coordinates where they overlap. Metres, map frame."""
-    k0, k1 = lattice_range(lo, hi, step)
-    return np.arange(k0, k1 + 1, dtype=np.float64) * step
+# The sides of a tile's border: each names the neighbour across it and that neighbour's name for the
+# same plane (the left neighbour's "x1" plane is our "x0").
+ACROSS: dict[str, tuple[tuple[int, int], str]] = {
+    "x0": ((-1, 0), "x1"), "x1": ((1, 0), "x0"), "y0": ((0, -1), "y1"), "y1": ((0, 1), "y0"),
+}
+
+
+def border_pins(i: int, j: int, border_of: Callable[[tuple[int, int]], dict[str, Any] | None]) -> dict[str, Any]:
+    """Border samples of tile (i, j)'s fused neighbours keyed by *our* side (their opposite side's
+    samples); ``border_of(key)`` gives a neighbour's ``FusionResult.border`` or None (not fused)."""
+    pins: dict[str, Any] = {}
+    for side, ((di, dj), theirs) in ACROSS.items():
+        border = border_of((i + di, j + dj))
+        if border and theirs in border:
+            pins[side] = border[theirs]
+    return pins

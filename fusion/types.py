@@ -30,6 +30,12 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     )
 
 
+def rotation_angle_deg(r: np.ndarray) -> np.ndarray:
+    """Rotation angle in degrees of rotation matrices ``(..., 3, 3)`` (shape ``(...)``)."""
+    cos = (np.trace(r, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Unit quaternion ``[w, x, y, z]`` (w ≥ 0) of a rotation matrix (3, 3)."""
     m = r

@@ -359,7 +359,7 @@ def report(title: str, samples: Samples, elapsed_s: float | None = None) -> None
     print(line, flush=True)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -392,17 +392,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--redis-url", default="redis://127.0.0.1:6379/14", help="Celery broker")
     parser.add_argument("--blob-url", default="", help="blob store (default: file store in a temp dir)")
     parser.add_argument("--keep", action="store_true", help="keep the temporary folder (logs, blobs)")
-    args = parser.parse_args(argv)
+    return parser
 
-    print(
-        f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores", flush=True
-    )
+
+def prepare_uploads(args: argparse.Namespace) -> list[list[Upload]]:
+    """Exactly ``--count`` submaps (fewer per vehicle for the last ones), one queue per vehicle."""
     run_id = uuid.uuid4().hex[:6]
     per_vehicle = max(1, -(-args.count // args.clients))
     grid_n = max(4, int(round((args.submap_kb * 1024 / BYTES_PER_GRID_VERTEX) ** 0.5)))
     began = time.perf_counter()
     queues = [vehicle_uploads(v, per_vehicle, grid_n, run_id) for v in range(args.clients)]
-    remaining = args.count  # trim so that exactly --count are prepared
+    remaining = args.count
     for queue in queues:
         del queue[min(len(queue), remaining) :]
         remaining -= len(queue)
@@ -412,46 +412,49 @@ def main(argv: list[str] | None = None) -> int:
         f"for {args.clients} vehicles in {time.perf_counter() - began:.1f} s",
         flush=True,
     )
-    vehicles = [q[0].agent_id for q in queues if q]
+    return [q for q in queues if q]
 
+
+def report_cpu(before: dict[str, float], after: dict[str, float], samples: Samples, elapsed: float) -> None:
+    ok = max(1, sum(c for s, c in samples.statuses.items() if _ok(s)))
+    used = {name: after[name] - before[name] for name in after if name in before}
+    print(
+        "CPU during uploads: "
+        + ", ".join(f"{name} {cpu:.1f} s ({cpu / ok * 1e3:.1f} ms/submap)" for name, cpu in used.items())
+        + f"; {os.cpu_count()} cores, {elapsed:.1f} s wall",
+        flush=True,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.url and not args.token:
+        parser.error("--url needs --token (an operator token)")
+    print(
+        f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores", flush=True
+    )
+    queues = prepare_uploads(args)
+    vehicles = [q[0].agent_id for q in queues]
+    deployment: contextlib.AbstractContextManager[tuple[str, str, dict[str, str], int | None]]
     if args.url:
-        if not args.token:
-            parser.error("--url needs --token (an operator token)")
-        deployment: contextlib.AbstractContextManager[tuple[str, str, dict[str, str], int | None]] = (
-            contextlib.nullcontext(
-                (args.url.rstrip("/"), args.token, {v: args.token for v in vehicles}, None)
-            )
-        )
+        deployment = contextlib.nullcontext((args.url.rstrip("/"), args.token, {v: args.token for v in vehicles}, None))
     else:
         deployment = local_deployment(args, vehicles)
 
     with deployment as (url, operator, tokens, api_pid):
         cpu_before = cpu_snapshot(api_pid)
-        samples, elapsed, tiles = asyncio.run(
-            upload_phase(url, tokens, [q for q in queues if q], args.duration, args.timeout)
-        )
-        cpu_after = cpu_snapshot(api_pid)
+        samples, elapsed, tiles = asyncio.run(upload_phase(url, tokens, queues, args.duration, args.timeout))
         report("POST /v1/submaps", samples, elapsed)
-        ok = max(1, sum(c for s, c in samples.statuses.items() if _ok(s)))
-        print(
-            "CPU during uploads: "
-            + ", ".join(
-                f"{name} {cpu_after[name] - cpu_before[name]:.1f} s ({(cpu_after[name] - cpu_before[name]) / ok * 1e3:.1f} ms/submap)"
-                for name in cpu_after
-                if name in cpu_before
+        report_cpu(cpu_before, cpu_snapshot(api_pid), samples, elapsed)
+        if not args.no_fusion and tiles:
+            tile = tiles.most_common(1)[0][0]
+            reads, polls, state = asyncio.run(
+                fusion_phase(url, operator, tile, args.readers, args.fusion_seconds, args.timeout)
             )
-            + f"; {os.cpu_count()} cores, {elapsed:.1f} s wall",
-            flush=True,
-        )
-        if args.no_fusion or not tiles:
-            return 0 if not any(not _ok(s) for s in samples.statuses) else 1
-        tile = tiles.most_common(1)[0][0]
-        reads, polls, state = asyncio.run(
-            fusion_phase(url, operator, tile, args.readers, args.fusion_seconds, args.timeout)
-        )
-        print(f"fusion of tile {tile}: job state at the end of the phase: {state}", flush=True)
-        report("GET /v1/tiles during fusion", reads)
-        report("GET /v1/jobs/{id} during fusion", polls)
+            print(f"fusion of tile {tile}: job state at the end of the phase: {state}", flush=True)
+            report("GET /v1/tiles during fusion", reads)
+            report("GET /v1/jobs/{id} during fusion", polls)
     errors = sum(c for s, c in samples.statuses.items() if not _ok(s))
     return 0 if errors == 0 else 1
 

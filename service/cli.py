@@ -13,6 +13,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from fusion.eval import cli as fusion_cli
 from service.settings import Settings, get_settings
 
 EXIT_ERROR = 2
@@ -176,13 +177,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("rest", nargs=argparse.REMAINDER)
         p.set_defaults(func=_passthrough(target))
 
-    try:
-        fusion_cli = importlib.import_module("fusion.eval.cli")
-    except ModuleNotFoundError as exc:
-        if exc.name != "fusion.eval.cli":
-            raise
-    else:
-        fusion_cli.register(sub)  # adds simulate / fuse / bench; each sets ``func``
+    fusion_cli.register(sub)  # adds simulate / fuse / bench; each sets ``func`` and imports lazily
     return parser
 
 

@@ -23,18 +23,18 @@ from datetime import datetime, timedelta
 from functools import lru_cache
 from typing import Any
 
-from sqlalchemy import and_, exists, or_, select, update
+from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.sql.elements import ColumnElement
 
 from service.broker import TASK_FUSE_TILE
 from service.settings import Settings, get_settings
-from service.store.models import FusionJob, JobState, JobTrigger, Submap, Tile, TileState, new_id, utcnow
+from service.store import tiles
+from service.store.models import FusionJob, JobState, JobTrigger, Tile, TileState, new_id, utcnow
 
 log = logging.getLogger(__name__)
 
 ACTIVE_JOB_STATES = (JobState.queued.value, JobState.running.value)
-BUSY_TILE_STATES = (TileState.queued.value, TileState.fusing.value)
 # A job whose worker died this many times is failed instead of being retried forever (poison input).
 MAX_ATTEMPTS = 3
 TICK_BATCH = 200
@@ -110,13 +110,7 @@ def _queue_tile(
 ) -> FusionJob | None:
     """Move tile (i, j) to ``queued`` with a new job if ``condition`` still holds; commit. None if not."""
     job_id = new_id()
-    result = db.execute(
-        update(Tile)
-        .where(Tile.i == i, Tile.j == j, condition)
-        .values(state=TileState.queued.value, job_id=job_id, progress=0.0, updated_at=now)
-        .execution_options(synchronize_session=False)
-    )
-    if result.rowcount != 1:  # type: ignore[attr-defined]
+    if not tiles.queue(db, i, j, job_id=job_id, condition=condition, now=now):
         db.rollback()
         return None
     generation = db.execute(select(Tile.dirty_generation).where(Tile.i == i, Tile.j == j)).scalar_one()
@@ -135,19 +129,13 @@ def _queue_tile(
     return job
 
 
-def owns_submaps(i_column: Any, j_column: Any) -> ColumnElement[bool]:
-    """Whether the tile is the home tile of some submap. Such tiles are fused first: they refine the
-    poses that their neighbours hold fixed, so the neighbours then fuse once, with refined poses."""
-    return exists().where(Submap.home_i == i_column, Submap.home_j == j_column)
-
-
 def schedule_due_tiles(db: Session, now: datetime, settings: Settings) -> list[FusionJob]:
     """Queue every due tile (one conditional UPDATE each); returns the jobs this process created."""
     condition = _due(now, settings)
     candidates = db.execute(
         select(Tile.i, Tile.j)
         .where(condition)
-        .order_by(owns_submaps(Tile.i, Tile.j).desc(), Tile.dirty_since)
+        .order_by(tiles.owns_submaps(Tile.i, Tile.j).desc(), Tile.dirty_since)
         .limit(TICK_BATCH)
     ).all()
     db.rollback()  # end the read transaction before writing (SQLite: no stale snapshot)
@@ -176,7 +164,7 @@ def request_fusion(
     settings = settings or get_settings()
     now = now or utcnow()
     for _ in range(3):
-        job = _queue_tile(db, i, j, Tile.state.not_in(BUSY_TILE_STATES), trigger, now)
+        job = _queue_tile(db, i, j, Tile.state.not_in(tiles.BUSY_STATES), trigger, now)
         if job is not None:
             enqueue(job.id, settings)
             return job
@@ -193,11 +181,7 @@ def request_fusion(
             db.commit()
             return active
         # Busy tile without an active job (inconsistent row): release it and try again.
-        db.execute(
-            update(Tile)
-            .where(Tile.i == i, Tile.j == j, Tile.state.in_(BUSY_TILE_STATES))
-            .values(state=TileState.dirty.value, lease_owner=None, lease_until=None, updated_at=now)
-        )
+        tiles.unstick(db, i, j, now)
         db.commit()
     raise RuntimeError(f"could not queue tile ({i}, {j}): it keeps changing state")
 
@@ -231,31 +215,15 @@ def _reclaim_expired_leases(db: Session, now: datetime, settings: Settings, repo
     A job whose worker died ``MAX_ATTEMPTS`` times is failed instead (the tile keeps serving its
     previous version).
     """
-    expired = and_(
-        Tile.state == TileState.fusing.value,
-        or_(Tile.lease_until.is_(None), Tile.lease_until < now),
-    )
-    tiles = db.execute(select(Tile.i, Tile.j, Tile.job_id).where(expired).limit(TICK_BATCH)).all()
+    expired = db.execute(
+        select(Tile.i, Tile.j, Tile.job_id).where(tiles.lease_expired(now)).limit(TICK_BATCH)
+    ).all()
     db.rollback()
-    for i, j, job_id in tiles:
+    for i, j, job_id in expired:
         job = db.get(FusionJob, job_id) if job_id else None
         give_up = job is None or job.attempts >= MAX_ATTEMPTS
         error = f"fusion worker lost {job.attempts if job else 0} time(s); giving up" if give_up else None
-        new_state = TileState.failed.value if give_up else TileState.queued.value
-        result = db.execute(
-            update(Tile)
-            .where(Tile.i == i, Tile.j == j, Tile.job_id == job_id, expired)
-            .values(
-                state=new_state,
-                lease_owner=None,
-                lease_until=None,
-                progress=0.0,
-                last_error=error,
-                updated_at=now,
-            )
-            .execution_options(synchronize_session=False)
-        )
-        if result.rowcount != 1:  # type: ignore[attr-defined]
+        if not tiles.reclaim(db, i, j, job_id=job_id, now=now, error=error):
             db.rollback()
             continue
         if job is not None:
@@ -352,7 +320,7 @@ def start_background(
     state = getattr(app, "state", None)
     settings = settings or getattr(state, "settings", None) or get_settings()
     if session_factory is None:
-        session_factory = getattr(state, "session_factory", None) or getattr(state, "sessionmaker", None)
+        session_factory = getattr(state, "session_factory", None)
     if session_factory is None:
         from service.store.db import engine_from_settings, make_sessionmaker
 

@@ -305,15 +305,15 @@ def test_get_submap_404_and_roles(client: TestClient, auth: dict[str, dict[str, 
 
 def _precheck_misses_once(monkeypatch: pytest.MonkeyPatch) -> None:
     """Make the first pre-check see nothing, as if a concurrent upload committed right after it."""
-    from service.api import ingest
+    from service.store import submaps
 
-    real, calls = ingest._precheck, []
+    real, calls = submaps._precheck, []
 
     def precheck(db: Any, prepared: Any) -> Any:
         calls.append(1)
         return None if len(calls) == 1 else real(db, prepared)
 
-    monkeypatch.setattr(ingest, "_precheck", precheck)
+    monkeypatch.setattr(submaps, "_precheck", precheck)
 
 
 def test_upload_racing_an_identical_one_is_200(

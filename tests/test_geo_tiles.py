@@ -11,8 +11,8 @@ import pytest
 from fusion.errors import PoseError
 from fusion.geo import geodetic_to_map, map_to_geodetic, parse_origin
 from fusion.tiles import (
+    border_pins,
     home_tile,
-    lattice_axis,
     lattice_range,
     posed_bbox,
     submap_tiles,
@@ -152,25 +152,25 @@ def test_home_tile_of_posed_centre() -> None:
     assert home_tile(mesh, turned, 64) == (-1, 0)
 
 
-def test_lattice_axis_multiples_of_step() -> None:
-    axis = lattice_axis(0.0, 64.0, 0.2)
-    assert len(axis) == 321 and axis[0] == 0.0 and axis[-1] == 64.0  # 64 / 0.2 is 320.00000000000006
-    left = lattice_axis(-64.0, 0.0, 0.2)
-    assert left[-1] == axis[0] and len(left) == 321
-    # neighbouring ranges share bit-identical coordinates
-    overlap = np.intersect1d(lattice_axis(-1.0, 1.0, 0.2), lattice_axis(0.0, 2.0, 0.2))
-    assert len(overlap) == 6
+def test_lattice_range_multiples_of_step() -> None:
+    assert lattice_range(0.0, 64.0, 0.2) == (0, 320)  # 64 / 0.2 is 320.00000000000006
+    assert lattice_range(0.0, 64.0, 0.2, inside=True) == (0, 320)
+    assert lattice_range(-64.0, 0.0, 0.2) == (-320, 0)  # neighbours share the border point
+    assert lattice_range(-12.8, 0.0, 0.2)[0] == -64
 
 
-def test_lattice_axis_covers_non_multiples() -> None:
-    axis = lattice_axis(0.05, 0.95, 0.2)
-    np.testing.assert_allclose(axis, [0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
+def test_lattice_range_covers_or_stays_inside_non_multiples() -> None:
     assert lattice_range(0.05, 0.95, 0.2) == (0, 5)
+    assert lattice_range(0.05, 0.95, 0.2, inside=True) == (1, 4)
     assert lattice_range(-0.3, -0.1, 0.1) == (-3, -1)
-    k0, _ = lattice_range(-12.8, 0.0, 0.2)
-    assert k0 == -64 and lattice_axis(-12.8, 0.0, 0.2)[0] == k0 * 0.2
-    assert lattice_axis(1.0, 1.0, 0.5).tolist() == [1.0]
+    assert lattice_range(1.0, 1.0, 0.5) == (2, 2)
     with pytest.raises(ValueError):
-        lattice_axis(0.0, 1.0, 0.0)
+        lattice_range(0.0, 1.0, 0.0)
     with pytest.raises(ValueError):
-        lattice_axis(2.0, 1.0, 0.1)
+        lattice_range(2.0, 1.0, 0.1)
+
+
+def test_border_pins_take_the_neighbours_opposite_side() -> None:
+    borders = {(1, 0): {"x0": "left plane of (1, 0)", "x1": "right"}, (0, -1): {"y1": "top of (0, -1)"}}
+    assert border_pins(0, 0, borders.get) == {"x1": "left plane of (1, 0)", "y0": "top of (0, -1)"}
+    assert border_pins(5, 5, borders.get) == {}

@@ -18,14 +18,15 @@ from fusion.errors import FusionError
 from service import schedule as scheduler
 from service.store.models import FusionJob, JobState, Tile, TileVersion, utcnow
 from tests.worker_support import FakeFusion, api, make_settings, session_factory, upload
-from worker import runner as jobs
-from worker.runner import claim_job, run_fusion_job
+from worker import runner
+from worker.lease import claim_job
+from worker.runner import run_fusion_job
 
 
 @pytest.fixture
 def fake(monkeypatch: pytest.MonkeyPatch) -> FakeFusion:
     fusion = FakeFusion(shift=0.0)
-    monkeypatch.setattr(jobs, "_fuse", fusion)
+    monkeypatch.setattr(runner, "_fuse", fusion)
     return fusion
 
 

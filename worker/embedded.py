@@ -15,6 +15,9 @@ from types import FrameType
 from sqlalchemy import select
 
 from service.settings import Settings
+from service.store.models import FusionJob, JobState
+from service.store.tiles import owns_submaps
+from worker.runner import Outcome, TransientJobError, WorkerShutdown, factory_for, run_fusion_job
 
 log = logging.getLogger(__name__)
 
@@ -23,19 +26,13 @@ SKIP_S = 30.0  # a job whose tile is leased elsewhere is not retried for this lo
 
 
 def _raise_shutdown(_signum: int, _frame: FrameType | None) -> None:
-    from worker.runner import WorkerShutdown
-
     raise WorkerShutdown()
 
 
 def next_queued_job(settings: Settings, skip: dict[str, float]) -> str | None:
     """The next queued job not skipped recently: home tiles of submaps first, then the oldest."""
-    from service.schedule import owns_submaps
-    from service.store.models import FusionJob, JobState
-    from worker.runner import _session_factory
-
     now = time.monotonic()
-    with _session_factory(settings.resolved_database_url)() as db:
+    with factory_for(settings.resolved_database_url)() as db:
         ids = db.execute(
             select(FusionJob.id)
             .where(FusionJob.state == JobState.queued.value)
@@ -47,8 +44,6 @@ def next_queued_job(settings: Settings, skip: dict[str, float]) -> str | None:
 
 def run_embedded(settings: Settings, max_jobs: int | None = None) -> int:
     """Poll for queued jobs and run them until SIGTERM/SIGINT or the parent dies; returns an exit code."""
-    from worker.runner import TransientJobError, WorkerShutdown, run_fusion_job
-
     parent = os.getppid()
     signal.signal(signal.SIGTERM, _raise_shutdown)
     signal.signal(signal.SIGINT, _raise_shutdown)
@@ -73,7 +68,7 @@ def run_embedded(settings: Settings, max_jobs: int | None = None) -> int:
                 time.sleep(backoff)
                 backoff = min(60.0, backoff * 2)
                 continue
-            if outcome == "skipped":
+            if outcome is Outcome.skipped:
                 skip[job_id] = time.monotonic() + SKIP_S
             else:
                 done += 1

@@ -19,37 +19,15 @@ from sqlalchemy.orm import Session
 
 from fusion.config import FusionConfig
 from fusion.meshio import MeshLimits, read_submap_ply
-from fusion.types import Pose, Sigma, SubmapInput, TileSpec
+from fusion.tiles import border_pins
+from fusion.types import Pose, Sigma, SubmapInput, TileSpec, quat_to_matrix, rotation_angle_deg
 from service.settings import Settings
 from service.store.blobs import BlobStore
 from service.store.models import Submap, SubmapTile, TileVersion
 
-# Neighbour offsets by the side of *our* tile they touch: the left neighbour's "x1" plane is our "x0".
-NEIGHBOURS = {"x0": ((-1, 0), "x1"), "x1": ((1, 0), "x0"), "y0": ((0, -1), "y1"), "y1": ((0, 1), "y0")}
-# A tiny schedule for tests and smoke runs: a few iterations and a coarse lattice (seconds on 2 cores).
-TINY = {
-    "iterations": 25,
-    "pose_warmup": 5,
-    "surface_samples": 512,
-    "space_samples": 512,
-    "num_levels": 6,
-    "lod_start_levels": 4,
-    "log2_table_size": 14,
-    "max_resolution": 64,
-    "geo_hidden": 32,
-    "sem_hidden": 32,
-    "pool_points": 20_000,
-    "consensus": False,
-    "c_th": 0.5,  # a few iterations leave confidences lower than a full schedule does
-    "extract_voxel_m": 1.0,
-    "tile_margin_m": 2.0,
-}
-
 
 def fusion_config(settings: Settings) -> FusionConfig:
     """The configured preset (``FLEETMAP_FUSION_PRESET``: ``cpu``, ``paper`` or ``tiny``)."""
-    if settings.fusion_preset == "tiny":
-        return FusionConfig.preset("cpu").with_(**TINY)
     return FusionConfig.preset(settings.fusion_preset)
 
 
@@ -117,20 +95,17 @@ def unpack_border(data: bytes) -> dict[str, Any]:
 
 def _border_pins(db: Session, blobs: BlobStore, i: int, j: int) -> dict[str, Any]:
     """Border samples of fused neighbours, keyed by our side (their opposite side's samples)."""
-    pins: dict[str, Any] = {}
-    for side, ((di, dj), their_side) in NEIGHBOURS.items():
+
+    def border_of(key: tuple[int, int]) -> dict[str, Any] | None:
         border_sha = db.execute(
             select(TileVersion.border_sha256)
-            .where(TileVersion.tile_i == i + di, TileVersion.tile_j == j + dj)
+            .where(TileVersion.tile_i == key[0], TileVersion.tile_j == key[1])
             .order_by(TileVersion.version.desc())
             .limit(1)
         ).scalar_one_or_none()
-        if not border_sha:
-            continue
-        theirs = unpack_border(blobs.get(border_sha))
-        if their_side in theirs:
-            pins[side] = theirs[their_side]
-    return pins
+        return unpack_border(blobs.get(border_sha)) if border_sha else None
+
+    return border_pins(i, j, border_of)
 
 
 def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
@@ -175,6 +150,4 @@ def load_meshes(db: Session, blobs: BlobStore, settings: Settings, inputs: TileI
 def pose_change(a: Pose, b: Pose) -> tuple[float, float]:
     """Translation (metres) and rotation angle (degrees) between two local → map poses."""
     trans = float(np.linalg.norm(np.asarray(a.t) - np.asarray(b.t)))
-    dot = abs(float(np.dot(a.q, b.q)))
-    rot = float(np.degrees(2.0 * np.arccos(min(1.0, dot))))
-    return trans, rot
+    return trans, float(rotation_angle_deg(quat_to_matrix(a.q).T @ quat_to_matrix(b.q)))

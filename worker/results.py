@@ -10,26 +10,37 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from datetime import datetime
-from typing import TYPE_CHECKING, Any
+from enum import StrEnum
+from typing import Any
 
 import numpy as np
-from sqlalchemy import case, func, literal, null, select, update
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.meshio import write_fused_ply, write_glb
 from fusion.types import FusionResult
+from service.store import tiles
 from service.store.blobs import BlobStore
-from service.store.models import FusionJob, JobState, Submap, SubmapTile, Tile, TileState, TileVersion, utcnow
+from service.store.models import FusionJob, JobState, Submap, SubmapTile, TileVersion, utcnow
 from worker.inputs import TileInputs, pack_border, pose_change
-
-if TYPE_CHECKING:
-    from worker.runner import Claim
+from worker.lease import Claim
 
 log = logging.getLogger(__name__)
 
 # A free submap that moved more than this marks the other tiles it touches dirty (multi-tile consistency).
 MOVE_THRESHOLD_M = 0.05
 MOVE_THRESHOLD_DEG = 0.1
+
+
+class Outcome(StrEnum):
+    """How :func:`run_fusion_job` ended."""
+
+    succeeded = "succeeded"  # a new tile version
+    reused = "reused"  # inputs unchanged since the latest version: no new version
+    failed = "failed"  # job and tile failed; the previous version is still served
+    skipped = "skipped"  # finished already, or the tile is leased by another worker
+    lost = "lost"  # the lease was taken away; another worker re-runs the job
+
 
 
 @dataclass
@@ -60,41 +71,6 @@ def jsonable(value: Any) -> Any:
     return value
 
 
-def _at(value: datetime) -> Any:
-    """A datetime literal typed like the tiles' columns (UTC on every backend)."""
-    return literal(value, type_=Tile.__table__.c.dirty_since.type)
-
-
-def finish_tile(db: Session, claim: Claim, now: datetime, *, new_version: bool) -> tuple[int, str] | None:
-    """Release our lease and set the tile ``fused`` (or ``dirty`` after concurrent uploads).
-
-    Returns ``(version, state)``, or None when the lease is no longer ours (nothing written).
-    """
-    unchanged = Tile.dirty_generation == claim.generation
-    values: dict[str, Any] = {
-        "state": case((unchanged, TileState.fused.value), else_=TileState.dirty.value),
-        "dirty_since": case(
-            (unchanged, null()), else_=func.coalesce(Tile.dirty_since, _at(claim.started_at))
-        ),
-        "fused_generation": claim.generation,
-        "lease_owner": None,
-        "lease_until": None,
-        "progress": 1.0,
-        "last_error": None,
-        "updated_at": now,
-    }
-    if new_version:
-        values.update(version=Tile.version + 1, fused_at=now)
-    row = db.execute(
-        update(Tile)
-        .where(Tile.i == claim.i, Tile.j == claim.j, Tile.lease_owner == claim.owner)
-        .values(**values)
-        .returning(Tile.version, Tile.state)
-        .execution_options(synchronize_session=False)
-    ).one_or_none()
-    return None if row is None else (int(row[0]), str(row[1]))
-
-
 def _store_refined_poses(db: Session, inputs: TileInputs, result: FusionResult, now: datetime) -> list[str]:
     """Write the refined poses of the tile's home (free) submaps; returns the ids that moved."""
     free = {s.id for s, _, is_free in inputs.rows if is_free}
@@ -111,26 +87,20 @@ def _store_refined_poses(db: Session, inputs: TileInputs, result: FusionResult, 
     return moved
 
 
+def _finish(db: Session, claim: Claim, now: datetime, *, new_version: bool) -> tuple[int, str] | None:
+    return tiles.finish(db, claim.i, claim.j, owner=claim.owner, generation=claim.generation,
+                        started_at=claim.started_at, now=now, new_version=new_version)
+
+
 def _mark_tiles_dirty(
     db: Session, claim: Claim, submap_ids: list[str], now: datetime
 ) -> list[tuple[int, int]]:
     """The other tiles touched by ``submap_ids`` need a re-fusion: their held poses changed."""
-    tiles = db.execute(
+    touched = db.execute(
         select(SubmapTile.i, SubmapTile.j).where(SubmapTile.submap_id.in_(submap_ids)).distinct()
     ).all()
-    others = [(int(i), int(j)) for i, j in tiles if (i, j) != (claim.i, claim.j)]
-    for i, j in others:
-        db.execute(
-            update(Tile)
-            .where(Tile.i == i, Tile.j == j)
-            .values(
-                dirty_generation=Tile.dirty_generation + 1,
-                dirty_since=func.coalesce(Tile.dirty_since, _at(now)),
-                state=case((Tile.state == TileState.fused.value, TileState.dirty.value), else_=Tile.state),
-                updated_at=now,
-            )
-            .execution_options(synchronize_session=False)
-        )
+    others = sorted((int(i), int(j)) for i, j in touched if (i, j) != (claim.i, claim.j))
+    tiles.mark_dirty(db, others, now, upload=False)
     return others
 
 
@@ -141,7 +111,7 @@ def commit_success(
     result: FusionResult,
     stored: StoredBlobs,
     duration_s: float,
-) -> str:
+) -> Outcome:
     """ONE transaction: tile version, refined poses, tile state, job, neighbours. ``succeeded``/``lost``."""
     now = utcnow()
     with factory() as db:
@@ -151,11 +121,11 @@ def commit_success(
             .order_by(TileVersion.version.desc())
             .limit(1)
         ).first()
-        finished = finish_tile(db, claim, now, new_version=True)
+        finished = _finish(db, claim, now, new_version=True)
         if finished is None:
             db.rollback()
             log.warning("job %s: lease lost before commit; results discarded", claim.job_id)
-            return "lost"
+            return Outcome.lost
         version, state = finished
         metrics = jsonable(dict(result.metrics))
         metrics.update(
@@ -196,7 +166,7 @@ def commit_success(
         state,
         len(moved),
     )
-    return "succeeded"
+    return Outcome.succeeded
 
 
 def _job_succeeded(db: Session, claim: Claim, now: datetime, fingerprint: str, metrics: dict[str, Any]) -> None:
@@ -215,17 +185,17 @@ def _job_succeeded(db: Session, claim: Claim, now: datetime, fingerprint: str, m
     )
 
 
-def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInputs) -> str:
+def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInputs) -> Outcome:
     """The latest version already used exactly these inputs: finish without a new version."""
     now = utcnow()
     with factory() as db:
-        finished = finish_tile(db, claim, now, new_version=False)
+        finished = _finish(db, claim, now, new_version=False)
         if finished is None:
             db.rollback()
-            return "lost"
+            return Outcome.lost
         version, _ = finished
         _job_succeeded(db, claim, now, inputs.fingerprint,
                        {"reused_version": version, "submaps": len(inputs.rows)})
         db.commit()
     log.info("tile (%d, %d): inputs unchanged since version %d; no new version", claim.i, claim.j, version)
-    return "reused"
+    return Outcome.reused

@@ -15,36 +15,11 @@ import argparse
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fusion.eval.harness import Harness, Row, bench_harness
 from fusion.types import FusedMesh, Pose
-
-Row = dict[str, Any]
-Scores = dict[str, float]
-
-
-@dataclass
-class Harness:
-    """What the studies need from the bench (all frames: map frame, metres).
-
-    simulate(**overrides) -> scenario: a synthetic fleet + one tile (overrides: ``sessions``,
-        ``submap_length``, ``gps_sigma_m``, ``gps_sigma_deg``, ``seed``);
-    fuse(scenario, config) -> (mesh, poses, seconds): the neural fusion of the scenario's tile;
-    evaluate(scenario, mesh, poses) -> scores: the bench's P/R/F and pose RMSE keys (see module doc);
-    base_config: the FusionConfig the bench fuses with; submaps(scenario) / tile(scenario): inputs;
-    uploaded_mb_per_km(scenario) and field_mb_per_km(scenario, config, mesh): data sizes.
-    """
-
-    simulate: Callable[..., Any]
-    fuse: Callable[[Any, Any], tuple[FusedMesh, dict[str, Pose], float]]
-    evaluate: Callable[[Any, FusedMesh, dict[str, Pose]], Scores]
-    base_config: Any
-    submaps: Callable[[Any], list]
-    tile: Callable[[Any], Any]
-    uploaded_mb_per_km: Callable[[Any], float]
-    field_mb_per_km: Callable[[Any, Any], float]
 
 
 def _emit(row: Row) -> Row:
@@ -308,25 +283,4 @@ def run_extras(args: argparse.Namespace, harness: Harness | None = None) -> dict
 
 def default_harness(args: argparse.Namespace) -> Harness:
     """The :class:`Harness` backed by :mod:`fusion.eval.bench` (see :mod:`fusion.eval.harness`)."""
-    from fusion.eval.harness import bench_harness
-
     return bench_harness(args)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m fusion.eval.ablations --baseline | --ablation NAME`` (the same options as ``fleetmap bench``)."""
-    parser = argparse.ArgumentParser(prog="fusion.eval.ablations", description=__doc__.splitlines()[0])
-    from fusion.eval.cli import add_fleet_arguments
-
-    parser.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
-    add_fleet_arguments(parser)
-    add_bench_arguments(parser)
-    args = parser.parse_args(argv)
-    if not wants_extras(args):
-        parser.error("nothing to do: pass --baseline and/or --ablation NAME")
-    run_extras(args)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -46,7 +46,7 @@ from fusion.eval import metrics
 from fusion.eval.synth.simulate import GroundTruth, load_ground_truth, simulate
 from fusion.labels import LABELS
 from fusion.offline import LoadedSubmap, fuse_tiles, load_directory
-from fusion.types import FusedMesh, Pose
+from fusion.types import FusedMesh, Pose, rotation_angle_deg
 
 TILE = (0, 0)
 TILE_SIZE = 64.0
@@ -141,7 +141,7 @@ def evaluate_both(ctx: BenchContext, mesh: FusedMesh, poses: dict[str, Pose]) ->
     aligned = evaluate_mesh(ctx, mesh, (r, t))
     absolute = evaluate_mesh(ctx, mesh)
     centre = np.array([(TILE[0] + 0.5) * ctx.tile_size, (TILE[1] + 0.5) * ctx.tile_size, 0.0])
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
+    angle = float(rotation_angle_deg(r))
     return aligned | {f"abs_{k}": absolute[k] for k in ABS_KEYS} | {
         "gauge_m": float(np.linalg.norm(r @ centre + t - centre)), "gauge_deg": angle}
 

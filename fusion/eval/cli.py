@@ -13,6 +13,8 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
+from fusion.config import PRESETS
+
 EXIT_ERROR = 2
 
 
@@ -114,7 +116,7 @@ def _positive_int(text: str) -> int:
 
 
 def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
-    """The synthetic fleet's options (``simulate``, ``bench``, ``python -m fusion.eval.ablations``)."""
+    """The synthetic fleet's options (``simulate``, ``bench``)."""
     p.add_argument("--seed", type=int, default=0, help="world and fleet seed (default 0)")
     p.add_argument("--sessions", type=_positive_int, default=5, help="driving sessions (default 5)")
     p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
@@ -133,13 +135,13 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("fuse", help="fuse a directory of submaps (NAME.ply + NAME.json) tile by tile")
     p.add_argument("dir", help="directory with NAME.ply + NAME.json submaps")
     p.add_argument("--out", required=True, help="output directory (tiles/*.ply, poses.json)")
-    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fusion configuration (default cpu)")
+    p.add_argument("--preset", choices=PRESETS, default="cpu", help="fusion configuration (default cpu)")
     p.add_argument("--tile-size", type=float, default=64.0, help="tile size, metres (default 64)")
     p.add_argument("--origin", default=None, help="geodetic map origin 'lat,lon,alt' for geodetic GPS fixes")
     p.set_defaults(func=cmd_fuse)
 
     p = subparsers.add_parser("bench", help="simulate, fuse one tile and evaluate against the ground truth")
-    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fusion configuration (default cpu)")
+    p.add_argument("--preset", choices=PRESETS, default="cpu", help="fusion configuration (default cpu)")
     p.add_argument("--json", default=None, metavar="FILE", help="write every figure to FILE")
     add_fleet_arguments(p)
     p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")

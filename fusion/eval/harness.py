@@ -1,4 +1,4 @@
-"""The :class:`fusion.eval.ablations.Harness` backed by :mod:`fusion.eval.bench`: the same simulated fleet, tile,
+"""The :class:`Harness` the ablation studies (``fusion.eval.ablations``) run on, backed by :mod:`fusion.eval.bench`: the same simulated fleet, tile,
 offline fusion path (``fusion.offline.fuse_tiles``) and scoring (``bench.evaluate_mesh`` after
 ``bench.gauge_transform``, ``bench.pose_figures``) as ``fleetmap bench``, so ablation rows compare with
 the bench table: ``geo_*``/``sem_f`` gauge-aligned, ``abs_geo_f``/``abs_sem_f`` in the map frame.
@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -16,8 +17,32 @@ from typing import Any
 import numpy as np
 
 from fusion.eval import bench
-from fusion.eval.ablations import Harness, Scores
 from fusion.types import FusedMesh, Pose, SubmapInput, TileSpec
+
+Row = dict[str, Any]
+Scores = dict[str, float]
+
+
+@dataclass
+class Harness:
+    """What the studies need from the bench (all frames: map frame, metres).
+
+    simulate(**overrides) -> scenario: a synthetic fleet + one tile (overrides: ``sessions``,
+        ``submap_length``, ``gps_sigma_m``, ``gps_sigma_deg``, ``seed``);
+    fuse(scenario, config) -> (mesh, poses, seconds): the neural fusion of the scenario's tile;
+    evaluate(scenario, mesh, poses) -> scores: the bench's P/R/F and pose RMSE keys (see module doc);
+    base_config: the FusionConfig the bench fuses with; submaps(scenario) / tile(scenario): inputs;
+    uploaded_mb_per_km(scenario) and field_mb_per_km(scenario, config, mesh): data sizes.
+    """
+
+    simulate: Callable[..., Any]
+    fuse: Callable[[Any, Any], tuple[FusedMesh, dict[str, Pose], float]]
+    evaluate: Callable[[Any, FusedMesh, dict[str, Pose]], Scores]
+    base_config: Any
+    submaps: Callable[[Any], list]
+    tile: Callable[[Any], Any]
+    uploaded_mb_per_km: Callable[[Any], float]
+    field_mb_per_km: Callable[[Any, Any], float]
 
 
 @dataclass

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fusion.types import FusedMesh, Pose, SemanticMesh
+from fusion.types import FusedMesh, Pose, SemanticMesh, rotation_angle_deg
 
 DEFAULT_D = 0.2  # metres (paper: d = 20 cm)
 DEFAULT_DENSITY = 100.0  # points per m² (10 cm spacing, well below d)
@@ -144,12 +144,6 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple
     return r, mu_d - scale * r @ mu_s, scale
 
 
-def _angle_deg(r: np.ndarray) -> np.ndarray:
-    """Rotation angles (deg) of matrices (n, 3, 3)."""
-    cos = (np.trace(r, axis1=1, axis2=2) - 1) / 2
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
 def gauge_alignment(estimated: list[Pose], truth: list[Pose],
                     anchors: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Rigid transform ``(R, t)`` (map frame) taking the estimated map's gauge to the truth's: the
@@ -189,5 +183,5 @@ def pose_rmse(estimated: list[Pose], truth: list[Pose], align: bool = True) -> t
     trans = float(np.sqrt(np.mean(np.sum((te_al - tt) ** 2, axis=1))))
     re = np.array([r @ p.rotation() for p in estimated])
     rt = np.array([p.rotation() for p in truth])
-    rot = float(np.sqrt(np.mean(_angle_deg(np.transpose(rt, (0, 2, 1)) @ re) ** 2)))
+    rot = float(np.sqrt(np.mean(rotation_angle_deg(np.transpose(rt, (0, 2, 1)) @ re) ** 2)))
     return trans, rot

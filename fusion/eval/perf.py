@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from fusion.config import PRESETS
 from fusion.runtime import tune_allocator
 
 WORKLOADS = ("grid", "field", "step")
@@ -135,7 +136,7 @@ def format_throughput(report: dict[str, Any]) -> str:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fusion configuration (default cpu)")
+    p.add_argument("--preset", choices=PRESETS, default="cpu", help="fusion configuration (default cpu)")
     p.add_argument("--batch", type=int, default=None, help="points per step (default: the preset's samples)")
     p.add_argument("--runs", type=int, default=7, help="timed repetitions; the median is reported (default 7)")
     p.add_argument("--warmup", type=int, default=2, help="untimed repetitions first (default 2)")

@@ -10,8 +10,6 @@ module), which leaves its handle in ``app.state.scheduler``; shutdown calls
 
 from __future__ import annotations
 
-import importlib
-import inspect
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -25,6 +23,7 @@ from service.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
 from service.api.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
 from service.api.routes import capabilities, jobs, labels, ops, sessions, submaps, tiles
 from service.api.schemas import SubmapMeta
+from service.schedule import start_background, stop_background
 from service.settings import Settings, get_settings
 from service.store.blobs import blob_store_from_url
 from service.store.db import engine_from_settings, make_sessionmaker
@@ -38,39 +37,18 @@ fuses them tile by tile and serves fused semantic meshes. Every error is an RFC 
 (`application/problem+json`). Frames: map frame = ENU metres around the configured origin."""
 
 
-async def _call_hook(app: FastAPI, name: str) -> bool:
-    """Call ``service.schedule.<name>(app)`` when the jobs module provides it (sync or async)."""
-    scheduler = importlib.import_module("service.schedule")
-    hook = getattr(scheduler, name, None)
-    if hook is None:
-        return False
-    result = hook(app)
-    if inspect.isawaitable(result):
-        await result
-    return True
-
-
-async def _stop_background(app: FastAPI) -> None:
-    """``service.schedule.stop_background(app)`` if defined, else ``app.state.scheduler.stop()``."""
-    if await _call_hook(app, "stop_background"):
-        return
-    background = getattr(app.state, "scheduler", None)
-    if background is not None:
-        await run_in_threadpool(background.stop)
-
-
 def _lifespan(migrate: bool, background: bool) -> Any:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if migrate:
             upgrade(app.state.engine)
         if background:
-            await _call_hook(app, "start_background")
+            start_background(app)
         try:
             yield
         finally:
             if background:
-                await _stop_background(app)
+                await run_in_threadpool(stop_background, app)
             app.state.engine.dispose()
 
     return lifespan

@@ -11,9 +11,10 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import Engine, create_engine, event, exc, text
+from sqlalchemy import Engine, Table, create_engine, event, exc, text
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -148,5 +149,21 @@ def ping(engine: Engine) -> None:
         conn.execute(text("SELECT 1"))
 
 
-def is_sqlite(engine: Engine) -> bool:
-    return engine.dialect.name == "sqlite"
+def is_postgres(db: Session) -> bool:
+    """Whether ``db`` talks to PostgreSQL (else SQLite, the embedded default)."""
+    return db.get_bind().dialect.name == "postgresql"
+
+
+def table_of(model: type[Any]) -> Table:
+    """The Core ``Table`` of a declarative model (SQLAlchemy types ``__table__`` as a ``FromClause``)."""
+    return cast(Table, model.__table__)
+
+
+def insert_ignore(db: Session, model: type[Any], rows: list[dict[str, Any]]) -> None:
+    """INSERT … ON CONFLICT DO NOTHING on either backend.
+
+    Core executemany with bound rows: the statement compiles once and is cached (a ``.values(rows)``
+    statement recompiled on every upload and was a hot spot of the ingest path).
+    """
+    module = postgresql if is_postgres(db) else sqlite
+    db.connection().execute(module.insert(table_of(model)).on_conflict_do_nothing(), rows)

@@ -7,16 +7,27 @@ that nothing overlaps, then turned into labelled ``Part`` meshes.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from fusion.eval.synth import shapes
+from fusion.eval.synth.shapes import Part
 from fusion.labels import LABEL_BY_NAME
 
-if TYPE_CHECKING:
-    from fusion.eval.synth.world import Part, World
+
+class World(Protocol):
+    """What placement needs of the world it furnishes (``fusion.eval.synth.world.World``)."""
+
+    params: Any  # WorldParams
+    roads: list[np.ndarray]
+    sidewalk_width: float
+    occupancy: Occupancy
+
+    def ground_height(self, xy: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray: ...
+
+    def ground_label(self, xy: np.ndarray) -> np.ndarray: ...
 
 L = {name: label.id for name, label in LABEL_BY_NAME.items()}
 RASTER = 0.5  # occupancy raster cell (m)
@@ -68,7 +79,6 @@ def _min_ground(world: World, rect: tuple[float, float, float, float, float]) ->
 
 
 def _part(mesh: shapes.Mesh, label: str, kind: str, rect=None, occluder: bool = False, session=None) -> Part:
-    from fusion.eval.synth.world import Part
 
     v, f = mesh
     return Part(v, f, np.full(len(f), L[label]), kind, session, rect, occluder)

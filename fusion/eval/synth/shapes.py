@@ -7,10 +7,30 @@ crop the world face by face, so faces must be small compared with the sensor ran
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import trimesh
 
 Mesh = tuple[np.ndarray, np.ndarray]
+
+
+@dataclass
+class Part:
+    """One labelled closed (or open, for markings) mesh of the world, map frame.
+
+    ``session``: index of the only session that sees it (a transient object), or None (static).
+    ``footprint``: (cx, cy, half_length, half_width, yaw) hiding the ground below it; ``occluder``:
+    blocks the view of what lies behind it (buildings).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    labels: np.ndarray
+    kind: str
+    session: int | None = None
+    footprint: tuple[float, float, float, float, float] | None = None
+    occluder: bool = False
 
 
 def _finish(mesh: trimesh.Trimesh, max_edge: float) -> Mesh:

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fusion.eval.synth import placement, shapes
+from fusion.eval.synth.shapes import Part
 from fusion.labels import LABEL_BY_NAME
 
 ROAD, SIDEWALK, LANE, TERRAIN = (LABEL_BY_NAME[n].id for n in ("road", "sidewalk", "lane_marking", "terrain"))
@@ -58,24 +59,6 @@ class WorldParams:
         lo = np.asarray(self.core_min, float) - self.margin
         hi = np.asarray(self.core_max, float) + self.margin
         return lo, hi
-
-
-@dataclass
-class Part:
-    """One labelled closed (or open, for markings) mesh of the world, map frame.
-
-    ``session``: index of the only session that sees it (a transient object), or None (static).
-    ``footprint``: (cx, cy, half_length, half_width, yaw) hiding the ground below it; ``occluder``:
-    blocks the view of what lies behind it (buildings).
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    labels: np.ndarray
-    kind: str
-    session: int | None = None
-    footprint: tuple[float, float, float, float, float] | None = None
-    occluder: bool = False
 
 
 class World:

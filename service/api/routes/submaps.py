@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session, sessionmaker
@@ -10,12 +12,13 @@ from starlette.datastructures import UploadFile
 from fusion.errors import FusionLibraryError
 from service.api.auth import Principal
 from service.api.deps import BlobsDep, Reader, SessionDep, SettingsDep, Uploader
-from service.api.ingest import parse_meta, prepare, store, submap_tile_list
+from service.api.ingest import parse_meta, prepare
 from service.api.problems import BodyTooLargeError, ProblemError, problem_responses
 from service.api.schemas import Pose, SubmapCreated, SubmapPublic
 from service.settings import Settings
 from service.store.blobs import BlobStore
 from service.store.models import Submap
+from service.store.submaps import SubmapConflict, store, submap_tile_list
 from service.telemetry import UPLOAD_BYTES, UPLOADS, record_rejection
 
 router = APIRouter(prefix="/v1/submaps", tags=["submaps"])
@@ -133,9 +136,13 @@ def _ingest(
         raise ProblemError(
             403, f"this token may upload only as agent {principal.name!r}", code="agent_mismatch"
         )
-    prepared = prepare(meta, mesh_data, settings)
+    new = prepare(meta, mesh_data, settings)
     with session_factory() as db:
-        return store(db, blobs, prepared)
+        try:
+            stored, created = store(db, blobs, new)
+        except SubmapConflict as exc:
+            raise ProblemError(409, exc.message, code=exc.code) from exc
+    return SubmapCreated(**asdict(stored)), created
 
 
 @router.get(
