@@ -72,6 +72,7 @@ def expect_code(data: bytes, code: str, limits: MeshLimits = MeshLimits()) -> Me
         read_submap_ply(data, limits)
     assert info.value.code == code, info.value.message
     assert info.value.message
+    assert info.value.loc and info.value.loc[0] == "mesh"  # every mesh error says where
     return info.value
 
 
@@ -306,6 +307,59 @@ def test_too_many_faces_after_triangulation() -> None:
 def test_empty_mesh() -> None:
     empty = ASCII_OK.split("end_header\n")[0].replace("element face 2", "element face 0")
     expect_code((empty + "end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n").encode(), "empty_mesh")
+
+
+def strip_ply(n_faces: int = 20, face_rows: dict[int, str] | None = None, vertex_rows: dict[int, str] | None = None) -> bytes:
+    """An ASCII strip of ``n_faces`` labelled triangles with some rows replaced."""
+    n = n_faces // 2
+    verts = [f"{x} {y} 0" for y in (0, 1) for x in range(n + 1)]
+    tris = []
+    for k in range(n):
+        tris += [f"3 {k} {k + 1} {n + 1 + k} 1", f"3 {k + 1} {n + 2 + k} {n + 1 + k} 2"]
+    for k, row in (vertex_rows or {}).items():
+        verts[k] = row
+    for k, row in (face_rows or {}).items():
+        tris[k] = row
+    return ascii_ply(XYZ, f"{TRI},uchar label", verts, tris)
+
+
+@pytest.mark.parametrize(
+    ("data", "code", "loc"),
+    [
+        (strip_ply(face_rows={13: "3 0 1 99 1"}), "bad_vertex_index", ("mesh", "face", 13)),
+        (strip_ply(face_rows={7: "3 0 1 2 200"}), "unknown_label", ("mesh", "face", 7)),
+        (strip_ply(face_rows={5: "2 0 1 1"}), "not_triangles", ("mesh", "face", 5)),
+        (strip_ply(vertex_rows={17: "1 nan 0"}), "non_finite_coordinates", ("mesh", "vertex", 17)),
+        (strip_ply(vertex_rows={4: "1 1 5000"}), "coordinate_limit", ("mesh", "vertex", 4)),
+        (strip_ply(vertex_rows={9: "1 one 0"}), "malformed_ply", ("mesh", "vertex", 9)),
+        (strip_ply(face_rows={3: "3 0 1 2"}), "malformed_ply", ("mesh", "face", 3)),
+        (strip_ply(face_rows={3: "3 0 1 2 1 7"}), "malformed_ply", ("mesh", "face", 3)),
+        (strip_ply().replace(b"element face 20", b"element face 22"), "count_mismatch", ("mesh", "face", 20)),
+        (strip_ply().replace(b"property float z", b"property int z"), "malformed_ply", ("mesh", "header")),
+        (b"not a ply", "malformed_ply", ("mesh", "header")),
+        (strip_ply(face_rows={k: f"3 {k // 2} {k // 2 + 1} 11 0" for k in range(20)}), "no_labelled_face", ("mesh", "face")),
+    ],
+    ids=[
+        "index", "label", "short-face", "nan", "far", "bad-token", "few-tokens", "more-tokens", "count",
+        "header", "garbage", "unlabelled",
+    ],
+)
+def test_errors_say_where(data: bytes, code: str, loc: tuple) -> None:
+    assert expect_code(data, code).loc == loc
+
+
+def test_binary_errors_say_where() -> None:
+    mesh = semantic_mesh()
+    mesh.faces[1, 2] = 7
+    assert expect_code(write_submap_ply(mesh), "bad_vertex_index").loc == ("mesh", "face", 1)
+    data = write_submap_ply(semantic_mesh())
+    assert expect_code(data[:-3], "truncated_ply").loc == ("mesh", "face", 1)
+    vertex = vertices(extra=[("label", "u1", [1, 1, 40, 1])])
+    assert expect_code(ply_bytes(vertex, faces([[0, 1, 2]])), "unknown_label").loc == ("mesh", "vertex", 2)
+    extra = colour_fields([ROAD] * 4)
+    extra[0] = ("red", "u1", [128, 128, 128, 127])
+    error = expect_code(ply_bytes(vertices(extra=extra), faces([[0, 1, 2]])), "unknown_label")
+    assert error.loc == ("mesh", "vertex", 3)
 
 
 def test_fuzzed_bytes_raise_only_validation_errors() -> None:
