@@ -160,10 +160,6 @@ def _check_body_size(header: plyfile.PlyData, body: bytes) -> None:
         )
 
 
-_WHITESPACE = np.zeros(256, dtype=bool)
-_WHITESPACE[list(b" \t\n\v\f\r")] = True
-
-
 def _parse_rows(block: bytes, dtype: type[Any]) -> np.ndarray | None:
     """Every whitespace-separated number of ``block`` (numpy's C parser); None if a token is not one."""
     try:
@@ -185,6 +181,55 @@ def _first_bad_row(body: bytes, starts: np.ndarray, ends: np.ndarray, dtype: Any
     return lo
 
 
+def _rows_not_of_width(
+    token_at: np.ndarray, token: int, starts: np.ndarray, ends: np.ndarray, width: int
+) -> tuple[int, int] | None:
+    """None if each line [starts[k], ends[k]) holds exactly ``width`` of the values that start at
+    byte offsets ``token_at[token:]``; else the first line that does not, and how many it holds.
+
+    Lines hold exactly ``width`` each iff line k holds values k·width and k·width + width - 1 and the
+    value after the last line's is beyond it: strided comparisons, no counting per line."""
+    n = len(starts)
+    if n == 0:
+        return None
+    ours = token_at[token : token + n * width]
+    if len(ours) == n * width:
+        ok = np.all(ours[::width] >= starts) and np.all(ours[width - 1 :: width] < ends)
+        after = token + n * width
+        if ok and (after == len(token_at) or token_at[after] > ends[-1]):
+            return None
+    counts = np.searchsorted(token_at, ends) - np.searchsorted(token_at, starts)
+    bad = np.flatnonzero(counts != width)
+    k = int(bad[0]) if bad.size else n - 1
+    return k, int(counts[k])
+
+
+_INTEGER_BYTES = np.zeros(256, dtype=bool)  # what integer values (and the blanks between) are made of
+_INTEGER_BYTES[: 33] = True
+_INTEGER_BYTES[list(b"0123456789+-")] = True
+
+
+def _first_non_integer_row(
+    body: bytes,
+    start: int,
+    end: int,
+    token_at: np.ndarray,
+    token: int,
+    columns: list[tuple[str, int, int]],
+    is_int: list[bool],
+) -> int | None:
+    """First row of body[start:end] whose integer-typed column holds something other than digits and
+    a sign (``1.0``, ``1e3``: numbers, but not integers to plyfile), for elements parsed as floats."""
+    width = sum(w + (w > 1) for _, _, w in columns)
+    int_column = np.zeros(width, dtype=bool)
+    for (_, first, w), integer in zip(columns, is_int, strict=True):
+        int_column[first - (w > 1) : first + w] = integer  # a list's count is an integer too
+    other = np.flatnonzero(~_INTEGER_BYTES[np.frombuffer(body, dtype=np.uint8)[start:end]]) + start
+    value = np.searchsorted(token_at, other, side="right") - 1 - token
+    bad = value[int_column[value % width]]
+    return int(bad[0] // width) if bad.size else None
+
+
 def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfile.PlyData | None:
     """Vectorised reader of an ASCII body (plyfile's reads it row by row, ~40x slower).
 
@@ -198,15 +243,19 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
         body = body.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
     raw = np.frombuffer(body, dtype=np.uint8)
     newlines = np.flatnonzero(raw == ord("\n"))
-    starts = np.concatenate(([0], newlines + 1))
-    ends = np.concatenate((newlines, [len(body)]))
+    starts = np.concatenate(([0], newlines + 1))  # line k is body[starts[k] : ends[k]]
+    ends = np.append(newlines, len(body))
     if len(starts) < sum(e.count for e in header.elements):
         return None
-    space = _WHITESPACE[raw]
-    token_starts = np.flatnonzero(~space & np.concatenate(([True], space[:-1])))
-    first_token = np.searchsorted(token_starts, starts)  # index of each line's first token
-    del raw, space
-    row = 0
+    # where each value starts: a non-blank byte after a blank one (bytes <= 32 are blanks here, so
+    # control characters separate values, and then fail numpy's parse below)
+    space = raw <= 32
+    token_start = np.empty(len(raw), dtype=bool)
+    token_start[:1] = ~space[:1]
+    np.greater(space[:-1], space[1:], out=token_start[1:])
+    token_at = np.flatnonzero(token_start)
+    del raw, space, token_start
+    row, token = 0, 0
     for element in header.elements:
         n = element.count
         fields: list[tuple[str, np.dtype[Any], tuple[int, ...]]] = []
@@ -225,15 +274,14 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
                 columns.append((prop.name, width, 1))
                 width += 1
         lines = slice(row, row + n)
-        tokens = np.append(first_token, len(token_starts))[row + 1 : row + n + 1] - first_token[lines]
-        wrong = np.flatnonzero(tokens != width)
-        if wrong.size:
+        wrong = _rows_not_of_width(token_at, token, starts[lines], ends[lines], width)
+        if wrong is not None:
             if element.name == "face":
                 return None  # maybe polygons
-            k = int(wrong[0])
+            k, found = wrong
             raise _fail(
                 "malformed_ply",
-                f"bad PLY data: element '{element.name}' row {k} has {tokens[k]} values, its properties "
+                f"bad PLY data: element '{element.name}' row {k} has {found} values, its properties "
                 f"need {width}",
                 ("mesh", element.name, k),
             )
@@ -248,6 +296,15 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
                 f"bad PLY data: element '{element.name}' row {k}: a value is not a number",
                 ("mesh", element.name, k),
             )
+        if dtype is np.float64 and any(is_int):
+            decimal = _first_non_integer_row(body, starts[row], ends[row + n - 1], token_at, token, columns, is_int)
+            if decimal is not None:
+                raise _fail(
+                    "malformed_ply",
+                    f"bad PLY data: element '{element.name}' row {decimal}: an integer property holds a "
+                    "value written as a decimal",
+                    ("mesh", element.name, decimal),
+                )
         table = values.reshape(n, width)
         counts = next((first - 1 for _, first, w in columns if w == 3), None)
         if counts is not None and np.any(table[:, counts] != 3):
@@ -271,6 +328,7 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
             data[name] = part
         element.data = data
         row += n
+        token += n * width
     return header
 
 
