@@ -451,12 +451,13 @@ def test_ascii_reader_errors_match_plyfile(data: bytes, loc: tuple, monkeypatch:
     assert slow.loc in (loc, ("mesh",))  # plyfile's overflow errors name no row
 
 
-def test_ascii_reader_agrees_with_plyfile_on_mutated_tokens(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("case", ["extra-properties", "vertex-colours", "label-before-list", "quads"])
+def test_ascii_reader_agrees_with_plyfile_on_mutated_tokens(case: str, monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(11)
-    vertex, face = ascii_vs_binary_cases()["extra-properties"]
+    vertex, face = ascii_vs_binary_cases()[case]
     base = ply_bytes(vertex, face, text=True)
     head, body = base.split(b"end_header\n")
-    replacements = [b"", b"x", b"1.5", b"-1", b"300", b"7", b"1e3", b"nan", b"1 2", b"\n", b"\t", b"0"]
+    replacements = [b"", b"x", b"1.5", b"-1", b"300", b"7", b"1e3", b"nan", b"1 2", b"\n", b"\t", b"0", b"3.0", b"+2"]
 
     def outcome(data: bytes) -> tuple:
         try:
@@ -466,7 +467,7 @@ def test_ascii_reader_agrees_with_plyfile_on_mutated_tokens(monkeypatch: pytest.
         return ("ok", mesh.vertices.tobytes(), mesh.faces.tobytes(), mesh.face_labels.tobytes())
 
     cases = []
-    for _ in range(200):
+    for _ in range(300):
         tokens = body.split(b" ")
         for _ in range(rng.integers(1, 3)):
             k = int(rng.integers(0, len(tokens)))
