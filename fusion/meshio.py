@@ -160,21 +160,25 @@ def _check_body_size(header: plyfile.PlyData, body: bytes) -> None:
         )
 
 
-def _parse_rows(block: bytes, dtype: type[Any]) -> np.ndarray | None:
-    """Every whitespace-separated number of ``block`` (numpy's C parser); None if a token is not one."""
+def _parse_rows(block: bytes, dtype: type[Any], count: int) -> np.ndarray | None:
+    """The ``count`` whitespace-separated numbers of ``block`` (numpy's C parser); None if a token is
+    not a number (numpy 2 raises; older ones warn and stop early)."""
     try:
-        return np.fromstring(block, dtype=dtype, sep=" ")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            values = np.fromstring(block, dtype=dtype, sep=" ")
     except ValueError:
         return None
+    return values if values.size == count else None
 
 
-def _first_bad_row(body: bytes, starts: np.ndarray, ends: np.ndarray, dtype: Any) -> int:
+def _first_bad_row(body: bytes, starts: np.ndarray, ends: np.ndarray, dtype: Any, width: int) -> int:
     """Index (within ``starts``/``ends``) of the first line holding a token that is not a number:
     bisection over line ranges, so about two parses of the block whatever its size."""
     lo, hi = 0, len(starts)  # the bad line is in [lo, hi)
     while hi - lo > 1:
         mid = (lo + hi) // 2
-        if _parse_rows(body[starts[lo] : ends[mid - 1]], dtype) is None:
+        if _parse_rows(body[starts[lo] : ends[mid - 1]], dtype, (mid - lo) * width) is None:
             hi = mid
         else:
             lo = mid
@@ -288,9 +292,9 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
         is_int = [np.dtype(kind).kind in "iu" for _, kind, _ in fields]
         dtype = np.int64 if all(is_int) else np.float64
         block = body[starts[row] : ends[row + n - 1]] if n else b""
-        values = _parse_rows(block, dtype)
+        values = _parse_rows(block, dtype, n * width)
         if values is None:
-            k = _first_bad_row(body, starts[lines], ends[lines], dtype)
+            k = _first_bad_row(body, starts[lines], ends[lines], dtype, width)
             raise _fail(
                 "malformed_ply",
                 f"bad PLY data: element '{element.name}' row {k}: a value is not a number",
