@@ -278,21 +278,23 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
                 columns.append((prop.name, width, 1))
                 width += 1
         lines = slice(row, row + n)
+        is_int = [np.dtype(kind).kind in "iu" for _, kind, _ in fields]
+        dtype = np.int64 if all(is_int) else np.float64
         wrong = _rows_not_of_width(token_at, token, starts[lines], ends[lines], width)
         if wrong is not None:
             if element.name == "face":
                 return None  # maybe polygons
             k, found = wrong
-            raise _fail(
-                "malformed_ply",
-                f"bad PLY data: element '{element.name}' row {k} has {found} values, its properties "
-                f"need {width}",
-                ("mesh", element.name, k),
-            )
-        is_int = [np.dtype(kind).kind in "iu" for _, kind, _ in fields]
-        dtype = np.int64 if all(is_int) else np.float64
+            if not (k and _parse_rows(body[starts[row] : ends[row + k - 1]], dtype, k * width) is None):
+                raise _fail(
+                    "malformed_ply",
+                    f"bad PLY data: element '{element.name}' row {k} has {found} values, its properties "
+                    f"need {width}",
+                    ("mesh", element.name, k),
+                )
+            lines = slice(row, row + k)  # a value that is not a number comes first: find it
         block = body[starts[row] : ends[row + n - 1]] if n else b""
-        values = _parse_rows(block, dtype, n * width)
+        values = _parse_rows(block, dtype, n * width) if lines.stop == row + n else None
         if values is None:
             k = _first_bad_row(body, starts[lines], ends[lines], dtype, width)
             raise _fail(
@@ -300,7 +302,7 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
                 f"bad PLY data: element '{element.name}' row {k}: a value is not a number",
                 ("mesh", element.name, k),
             )
-        if dtype is np.float64 and any(is_int):
+        if n and dtype is np.float64 and any(is_int):
             decimal = _first_non_integer_row(body, starts[row], ends[row + n - 1], token_at, token, columns, is_int)
             if decimal is not None:
                 raise _fail(

@@ -434,6 +434,8 @@ def test_ascii_reader_handles_crlf_and_tabs() -> None:
         (strip_ply(vertex_rows={5: ""}), ("mesh", "vertex", 5)),  # a blank row
         (strip_ply(vertex_rows={21: "1 0x1 0"}), ("mesh", "vertex", 21)),  # not a number
         (strip_ply(vertex_rows={21: "1 \xff 0"}), ("mesh", "vertex", 21)),  # not even text
+        (strip_ply(vertex_rows={3: "1 x 0", 8: "1 1"}), ("mesh", "vertex", 3)),  # the first error wins
+        (strip_ply(vertex_rows={3: "1 1", 8: "1 x 0"}), ("mesh", "vertex", 3)),
         (strip_ply(face_rows={19: "3 0 1 2 one"}), ("mesh", "face", 19)),
         (strip_ply(face_rows={8: "3 0 1 2.5 1"}), ("mesh", "face", 8)),  # a float index
         (strip_ply(face_rows={8: "3 0 1 2 1", 9: "3 0 1 2 1 2"}), ("mesh", "face", 9)),
