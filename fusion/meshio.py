@@ -1,8 +1,10 @@
 """Semantic mesh I/O: submap PLY upload validation, fused PLY / GLB export (torch-free).
 
 Submap meshes are in the submap's *local* frame, fused meshes in the *map* frame; both in metres.
-PLY conventions follow API.md. Parsing is plyfile's; this module adds the checks API.md asks for and
-turns every way a PLY can be broken into a ``MeshValidationError`` with a stable code.
+PLY conventions follow API.md. Parsing is plyfile's, except ASCII bodies of the usual layouts, which
+``_read_ascii`` parses with numpy at close to binary speed; this module adds the checks API.md asks
+for and turns every way a PLY can be broken into a ``MeshValidationError`` with a stable code and a
+location (``("mesh", "header")``, ``("mesh", "vertex", k)``, ``("mesh", "face", k)``).
 """
 
 from __future__ import annotations
