@@ -3,17 +3,24 @@ the service maps them to RFC 9457 problem documents in one place."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 
 class FusionLibraryError(Exception):
-    """Base class: ``code`` is stable and machine-readable, ``message`` is for people."""
+    """Base class: ``code`` is stable and machine-readable, ``message`` is for people.
+
+    ``loc`` optionally says where in the input the problem is, as a path of names and indices, e.g.
+    ``("mesh", "header")``, ``("mesh", "vertex", 17)`` or ``("mesh", "face", 1234)``.
+    """
 
     code = "fusion_error"
 
-    def __init__(self, message: str, code: str | None = None) -> None:
+    def __init__(self, message: str, code: str | None = None, loc: Sequence[str | int] | None = None) -> None:
         super().__init__(message)
         self.message = message
         if code is not None:
             self.code = code
+        self.loc: tuple[str | int, ...] | None = tuple(loc) if loc is not None else None
 
 
 class MeshValidationError(FusionLibraryError):

@@ -1,8 +1,10 @@
 """Semantic mesh I/O: submap PLY upload validation, fused PLY / GLB export (torch-free).
 
 Submap meshes are in the submap's *local* frame, fused meshes in the *map* frame; both in metres.
-PLY conventions follow API.md. Parsing is plyfile's; this module adds the checks API.md asks for and
-turns every way a PLY can be broken into a ``MeshValidationError`` with a stable code.
+PLY conventions follow API.md. Parsing is plyfile's, except ASCII bodies of the usual layouts, which
+``_read_ascii`` parses with numpy at close to binary speed; this module adds the checks API.md asks
+for and turns every way a PLY can be broken into a ``MeshValidationError`` with a stable code and a
+location (``("mesh", "header")``, ``("mesh", "vertex", k)``, ``("mesh", "face", k)``).
 """
 
 from __future__ import annotations
@@ -54,8 +56,30 @@ class MeshLimits:
     num_labels: int = len(LABELS)
 
 
-def _fail(code: str, message: str) -> MeshValidationError:
-    return MeshValidationError(message, code=code)
+HEADER: tuple[str, ...] = ("mesh", "header")
+
+
+def _fail(code: str, message: str, loc: tuple[str | int, ...] = ("mesh",)) -> MeshValidationError:
+    """The error for rule ``code``; ``loc`` says where: ``("mesh", "header")``, ``("mesh", "face", k)``..."""
+    return MeshValidationError(message, code=code, loc=loc)
+
+
+def _row_loc(exc: plyfile.PlyElementParseError) -> tuple[str | int, ...]:
+    """Where plyfile stopped: element and row when it says so."""
+    if exc.element is None:
+        return ("mesh",)
+    if exc.row is None:
+        return ("mesh", exc.element.name)
+    return ("mesh", exc.element.name, int(exc.row))
+
+
+def _locate_row(header: plyfile.PlyData, row: int) -> tuple[str | int, ...]:
+    """The element and index of the ``row``-th data row (counting across elements)."""
+    for element in header.elements:
+        if row < element.count:
+            return ("mesh", element.name, row)
+        row -= element.count
+    return HEADER
 
 
 # --------------------------------------------------------------------------------------------- reading
@@ -64,22 +88,22 @@ def _fail(code: str, message: str) -> MeshValidationError:
 def _parse_header(data: bytes) -> tuple[plyfile.PlyData, int]:
     """The header (elements, counts, properties; no data) and the byte offset of the body."""
     if not data.startswith(b"ply"):
-        raise _fail("malformed_ply", "not a PLY file: the first line must be 'ply'")
+        raise _fail("malformed_ply", "not a PLY file: the first line must be 'ply'", HEADER)
     end = data.find(b"end_header", 0, _HEADER_MAX_BYTES)
     if end < 0:
-        raise _fail("malformed_ply", "no 'end_header' line within the first 64 KiB of the PLY file")
+        raise _fail("malformed_ply", "no 'end_header' line within the first 64 KiB of the PLY file", HEADER)
     stream = io.BytesIO(data[: end + len(b"end_header") + 2])
     try:
         # plyfile's header parser (private, stable since 0.x) reads only the header.
         header = plyfile.PlyData._parse_header(stream)
     except _DECODE_ERRORS as exc:
-        raise _fail("malformed_ply", f"bad PLY header: {exc}") from exc
+        raise _fail("malformed_ply", f"bad PLY header: {exc}", HEADER) from exc
     for element in header.elements:
         if element.count < 0:
-            raise _fail("malformed_ply", f"element '{element.name}' has a negative count")
+            raise _fail("malformed_ply", f"element '{element.name}' has a negative count", HEADER)
         if element.count and not element.properties:
             # rows of zero bytes: plyfile would loop over a count no file size bounds
-            raise _fail("malformed_ply", f"element '{element.name}' has rows but no properties")
+            raise _fail("malformed_ply", f"element '{element.name}' has rows but no properties", HEADER)
     return header, stream.tell()
 
 
@@ -93,6 +117,19 @@ def _min_body_bytes(header: plyfile.PlyData) -> int:
             row += np.dtype(prop.len_dtype if is_list else prop.val_dtype).itemsize
         total += row * element.count
     return total
+
+
+def _truncation_loc(header: plyfile.PlyData, size: int) -> tuple[str | int, ...]:
+    """The element and (lower-bound) row where a binary body of ``size`` bytes runs out."""
+    for element in header.elements:
+        row = sum(
+            np.dtype(p.len_dtype if isinstance(p, plyfile.PlyListProperty) else p.val_dtype).itemsize
+            for p in element.properties
+        )
+        if size < row * element.count:
+            return ("mesh", element.name, size // row)
+        size -= row * element.count
+    return ("mesh",)
 
 
 def _count_text_rows(body: bytes) -> int:
@@ -114,26 +151,210 @@ def _check_body_size(header: plyfile.PlyData, body: bytes) -> None:
                 "count_mismatch",
                 f"the ASCII body has {rows} rows, {what} than the header's {declared} ({counts}); "
                 "make the element counts match the data",
+                _locate_row(header, rows),
             )
     elif len(body) < _min_body_bytes(header):
         raise _fail(
             "truncated_ply",
             f"the PLY body ({len(body)} bytes) is shorter than the header requires ({counts}); "
             "the file is truncated: re-export it or retry the upload",
+            _truncation_loc(header, len(body)),
         )
 
 
+def _parse_rows(block: bytes, dtype: type[Any], count: int) -> np.ndarray | None:
+    """The ``count`` whitespace-separated numbers of ``block`` (numpy's C parser); None if a token is
+    not a number (numpy 2 raises; older ones warn and stop early)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            values = np.fromstring(block, dtype=dtype, sep=" ")
+    except ValueError:
+        return None
+    return values if values.size == count else None
+
+
+def _first_bad_row(body: bytes, starts: np.ndarray, ends: np.ndarray, dtype: Any, width: int) -> int:
+    """Index (within ``starts``/``ends``) of the first line holding a token that is not a number:
+    bisection over line ranges, so about two parses of the block whatever its size."""
+    lo, hi = 0, len(starts)  # the bad line is in [lo, hi)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if _parse_rows(body[starts[lo] : ends[mid - 1]], dtype, (mid - lo) * width) is None:
+            hi = mid
+        else:
+            lo = mid
+    return lo
+
+
+def _rows_not_of_width(
+    token_at: np.ndarray, token: int, starts: np.ndarray, ends: np.ndarray, width: int
+) -> tuple[int, int] | None:
+    """None if each line [starts[k], ends[k]) holds exactly ``width`` of the values that start at
+    byte offsets ``token_at[token:]``; else the first line that does not, and how many it holds.
+
+    Lines hold exactly ``width`` each iff line k holds values k·width and k·width + width - 1 and the
+    value after the last line's is beyond it: strided comparisons, no counting per line."""
+    n = len(starts)
+    if n == 0:
+        return None
+    ours = token_at[token : token + n * width]
+    if len(ours) == n * width:
+        ok = np.all(ours[::width] >= starts) and np.all(ours[width - 1 :: width] < ends)
+        after = token + n * width
+        if ok and (after == len(token_at) or token_at[after] > ends[-1]):
+            return None
+    counts = np.searchsorted(token_at, ends) - np.searchsorted(token_at, starts)
+    bad = np.flatnonzero(counts != width)
+    k = int(bad[0]) if bad.size else n - 1
+    return k, int(counts[k])
+
+
+_INTEGER_BYTES = np.zeros(256, dtype=bool)  # what integer values (and the blanks between) are made of
+_INTEGER_BYTES[: 33] = True
+_INTEGER_BYTES[list(b"0123456789+-")] = True
+
+
+def _first_non_integer_row(
+    body: bytes,
+    start: int,
+    end: int,
+    token_at: np.ndarray,
+    token: int,
+    columns: list[tuple[str, int, int]],
+    is_int: list[bool],
+) -> int | None:
+    """First row of body[start:end] whose integer-typed column holds something other than digits and
+    a sign (``1.0``, ``1e3``: numbers, but not integers to plyfile), for elements parsed as floats."""
+    width = sum(w + (w > 1) for _, _, w in columns)
+    int_column = np.zeros(width, dtype=bool)
+    for (_, first, w), integer in zip(columns, is_int, strict=True):
+        int_column[first - (w > 1) : first + w] = integer  # a list's count is an integer too
+    other = np.flatnonzero(~_INTEGER_BYTES[np.frombuffer(body, dtype=np.uint8)[start:end]]) + start
+    value = np.searchsorted(token_at, other, side="right") - 1 - token
+    bad = value[int_column[value % width]]
+    return int(bad[0] // width) if bad.size else None
+
+
+def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfile.PlyData | None:
+    """Vectorised reader of an ASCII body (plyfile's reads it row by row, ~40x slower).
+
+    Handles elements of scalar properties plus the face index list when every face is a triangle;
+    returns None for anything else (polygons, other lists), which plyfile's reader then takes, so
+    results and errors are plyfile's. Rows with the wrong number of values, values that are not
+    numbers or that do not fit their property's type are ``malformed_ply`` at their row; the element
+    data is set on ``header``'s elements, laid out as plyfile's memory-mapped reader lays it out.
+    """
+    if b"\r" in body:  # universal newlines, as plyfile's text stream reads them
+        body = body.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    raw = np.frombuffer(body, dtype=np.uint8)
+    newlines = np.flatnonzero(raw == ord("\n"))
+    starts = np.concatenate(([0], newlines + 1))  # line k is body[starts[k] : ends[k]]
+    ends = np.append(newlines, len(body))
+    if len(starts) < sum(e.count for e in header.elements):
+        return None
+    # where each value starts: a non-blank byte after a blank one (bytes <= 32 are blanks here, so
+    # control characters separate values, and then fail numpy's parse below)
+    space = raw <= 32
+    token_start = np.empty(len(raw), dtype=bool)
+    token_start[:1] = ~space[:1]
+    np.greater(space[:-1], space[1:], out=token_start[1:])
+    token_at = np.flatnonzero(token_start)
+    del raw, space, token_start
+    row, token = 0, 0
+    for element in header.elements:
+        n = element.count
+        fields: list[tuple[str, np.dtype[Any], tuple[int, ...]]] = []
+        columns: list[tuple[str, int, int]] = []  # name, first column, width
+        width = 0
+        for prop in element.properties:
+            kind = np.dtype(prop.val_dtype).newbyteorder("=")
+            if isinstance(prop, plyfile.PlyListProperty):
+                if element.name != "face" or prop.name != index_name:
+                    return None
+                fields.append((prop.name, kind, (3,)))
+                columns.append((prop.name, width + 1, 3))
+                width += 4  # the count, then three indices
+            else:
+                fields.append((prop.name, kind, ()))
+                columns.append((prop.name, width, 1))
+                width += 1
+        lines = slice(row, row + n)
+        is_int = [np.dtype(kind).kind in "iu" for _, kind, _ in fields]
+        dtype = np.int64 if all(is_int) else np.float64
+        wrong = _rows_not_of_width(token_at, token, starts[lines], ends[lines], width)
+        if wrong is not None:
+            if element.name == "face":
+                return None  # maybe polygons
+            k, found = wrong
+            if not (k and _parse_rows(body[starts[row] : ends[row + k - 1]], dtype, k * width) is None):
+                raise _fail(
+                    "malformed_ply",
+                    f"bad PLY data: element '{element.name}' row {k} has {found} values, its properties "
+                    f"need {width}",
+                    ("mesh", element.name, k),
+                )
+            lines = slice(row, row + k)  # a value that is not a number comes first: find it
+        block = body[starts[row] : ends[row + n - 1]] if n else b""
+        values = _parse_rows(block, dtype, n * width) if lines.stop == row + n else None
+        if values is None:
+            k = _first_bad_row(body, starts[lines], ends[lines], dtype, width)
+            raise _fail(
+                "malformed_ply",
+                f"bad PLY data: element '{element.name}' row {k}: a value is not a number",
+                ("mesh", element.name, k),
+            )
+        if n and dtype is np.float64 and any(is_int):
+            decimal = _first_non_integer_row(body, starts[row], ends[row + n - 1], token_at, token, columns, is_int)
+            if decimal is not None:
+                raise _fail(
+                    "malformed_ply",
+                    f"bad PLY data: element '{element.name}' row {decimal}: an integer property holds a "
+                    "value written as a decimal",
+                    ("mesh", element.name, decimal),
+                )
+        table = values.reshape(n, width)
+        counts = next((first - 1 for _, first, w in columns if w == 3), None)
+        if counts is not None and np.any(table[:, counts] != 3):
+            return None  # polygons (or a count that disagrees with the row: plyfile says which)
+        data = np.empty(n, dtype=fields)
+        for (name, first, w), (_, kind, _), integer in zip(columns, fields, is_int, strict=True):
+            part = table[:, first : first + w] if w > 1 else table[:, first]
+            if integer:
+                info = np.iinfo(kind)
+                ok = (part >= info.min) & (part <= info.max)
+                if dtype is np.float64:
+                    ok &= part == np.floor(part)
+                if not np.all(ok):
+                    k = int(np.flatnonzero(~ok.reshape(n, -1).all(axis=1))[0])
+                    raise _fail(
+                        "malformed_ply",
+                        f"bad PLY data: element '{element.name}' row {k}: property '{name}' needs "
+                        f"integers in {info.min}..{info.max}",
+                        ("mesh", element.name, k),
+                    )
+            data[name] = part
+        element.data = data
+        row += n
+        token += n * width
+    return header
+
+
 def _read_body(data: bytes, header: plyfile.PlyData, offset: int, index_name: str) -> plyfile.PlyData:
-    """Parse the whole file with plyfile; binary files go through a temporary file so plyfile can
-    memory-map all-triangle faces (its per-row list reader is ~100x slower)."""
+    """Parse the whole file: ASCII bodies with ``_read_ascii`` where it can; otherwise plyfile, binary
+    files through a temporary file so plyfile can memory-map all-triangle faces (its per-row list
+    reader is ~100x slower)."""
     if header.text:
+        fast = _read_ascii(header, data[offset:], index_name)
+        if fast is not None:
+            return fast
         try:
             with warnings.catch_warnings():  # numpy warns on empty lists; plyfile then raises
                 warnings.simplefilter("ignore", UserWarning)
                 return plyfile.PlyData.read(io.BytesIO(data))
         except plyfile.PlyElementParseError as exc:
             code = "count_mismatch" if exc.message == "early end-of-file" else "malformed_ply"
-            raise _fail(code, f"bad PLY data: {exc}") from exc
+            raise _fail(code, f"bad PLY data: {exc}", _row_loc(exc)) from exc
         except _DECODE_ERRORS as exc:
             raise _fail("malformed_ply", f"bad PLY data: {exc}") from exc
     with tempfile.TemporaryFile() as tmp:
@@ -147,7 +368,7 @@ def _read_body(data: bytes, header: plyfile.PlyData, offset: int, index_name: st
                 if known and exc.message == "unexpected list length":
                     continue  # polygons: take plyfile's general reader
                 code = "truncated_ply" if exc.message == "early end-of-file" else "malformed_ply"
-                raise _fail(code, f"bad PLY data: {exc}") from exc
+                raise _fail(code, f"bad PLY data: {exc}", _row_loc(exc)) from exc
             except _DECODE_ERRORS as exc:
                 raise _fail("malformed_ply", f"bad PLY data: {exc}") from exc
             extra = len(data) - tmp.tell()
@@ -157,6 +378,7 @@ def _read_body(data: bytes, header: plyfile.PlyData, offset: int, index_name: st
                     "count_mismatch",
                     f"{extra} bytes follow the last element the header declares ({counts}); "
                     "make the element counts match the data",
+                    HEADER,
                 )
             return ply
     raise AssertionError("unreachable")  # pragma: no cover
@@ -178,22 +400,24 @@ def _schema(header: plyfile.PlyData) -> str:
     """Check the header has what a submap needs; returns the face index property's name."""
     names = {e.name for e in header.elements}
     if "vertex" not in names:
-        raise _fail("missing_property", "the PLY has no 'vertex' element")
+        raise _fail("missing_property", "the PLY has no 'vertex' element", HEADER)
     if "face" not in names:
-        raise _fail("missing_property", "the PLY has no 'face' element: submaps must be triangle meshes")
+        raise _fail(
+            "missing_property", "the PLY has no 'face' element: submaps must be triangle meshes", HEADER
+        )
     vertex, face = header["vertex"], header["face"]
     for axis in "xyz":
         prop = _property(vertex, (axis,))
         if prop is None:
-            raise _fail("missing_property", f"vertex property '{axis}' is missing (need x, y, z)")
+            raise _fail("missing_property", f"vertex property '{axis}' is missing (need x, y, z)", HEADER)
         if np.dtype(prop.val_dtype).kind != "f":
-            raise _fail("malformed_ply", f"vertex property '{axis}' must be float or double")
+            raise _fail("malformed_ply", f"vertex property '{axis}' must be float or double", HEADER)
     lists = {p.name: p for p in face.properties if isinstance(p, plyfile.PlyListProperty)}
     index_name = next((n for n in INDEX_NAMES if n in lists), None)
     if index_name is None:
-        raise _fail("missing_property", "face list property 'vertex_indices' is missing")
+        raise _fail("missing_property", "face list property 'vertex_indices' is missing", HEADER)
     if np.dtype(lists[index_name].val_dtype).kind not in "iu":
-        raise _fail("malformed_ply", f"face property '{index_name}' must be a list of integers")
+        raise _fail("malformed_ply", f"face property '{index_name}' must be a list of integers", HEADER)
     return index_name
 
 
@@ -211,7 +435,9 @@ def _triangulate(lists: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.nda
     short = np.flatnonzero(lengths < 3)
     if short.size:
         raise _fail(
-            "not_triangles", f"face {short[0]} has {lengths[short[0]]} vertices; faces need at least 3"
+            "not_triangles",
+            f"face {short[0]} has {lengths[short[0]]} vertices; faces need at least 3",
+            ("mesh", "face", int(short[0])),
         )
     bad = np.flatnonzero((flat < 0) | (flat >= n_vertices))
     if bad.size:
@@ -220,6 +446,7 @@ def _triangulate(lists: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.nda
             "bad_vertex_index",
             f"face {face} refers to vertex {flat[bad[0]]}, but vertex indices must be in "
             f"0..{n_vertices - 1} ({bad.size} bad indices in all)",
+            ("mesh", "face", face),
         )
     if np.all(lengths == 3):
         return flat.reshape(-1, 3), np.arange(len(lengths))
@@ -230,22 +457,25 @@ def _triangulate(lists: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.nda
     return np.stack([flat[starts], flat[starts + k + 1], flat[starts + k + 2]], axis=1), source
 
 
-def _check_ids(values: np.ndarray, where: str, num_labels: int) -> np.ndarray:
+def _check_ids(values: np.ndarray, where: str, num_labels: int, element: str) -> np.ndarray:
     if values.dtype.kind not in "iu":
-        raise _fail("unknown_label", f"{where} must be an integer type, not {values.dtype}")
+        raise _fail("unknown_label", f"{where} must be an integer type, not {values.dtype}", HEADER)
     values = values.astype(np.int64)
-    bad = np.unique(values[(values < 0) | (values >= num_labels)])
-    if bad.size:
+    out = (values < 0) | (values >= num_labels)
+    if np.any(out):
+        bad = np.unique(values[out])
         raise _fail(
             "unknown_label",
             f"{where}: label ids {bad[:5].tolist()} are not in the label set 0..{num_labels - 1} "
             "(GET /v1/labels)",
+            ("mesh", element, int(np.flatnonzero(out)[0])),
         )
     return values
 
 
 def _colour_ids(data: np.ndarray, where: str, num_labels: int) -> np.ndarray:
-    """Label ids of exact label colours (red, green, blue); any other colour is unknown_label."""
+    """Label ids of exact label colours (red, green, blue); any other colour is unknown_label;
+    ``where`` is the element's name."""
     rgb = np.stack([np.asarray(data[c], dtype=np.float64) for c in ("red", "green", "blue")], axis=1)
     keys = np.where(
         np.all((rgb >= 0) & (rgb <= 255) & (rgb == np.round(rgb)), axis=1),
@@ -256,11 +486,13 @@ def _colour_ids(data: np.ndarray, where: str, num_labels: int) -> np.ndarray:
     uniq, inverse = np.unique(keys, return_inverse=True)
     mapped = np.array([table.get(int(k), -1) for k in uniq], dtype=np.int64)
     if np.any(mapped < 0):
-        first = rgb[np.flatnonzero(mapped[inverse] < 0)[0]]
+        index = int(np.flatnonzero(mapped[inverse.reshape(-1)] < 0)[0])
+        first = rgb[index]
         raise _fail(
             "unknown_label",
             f"{where} colour {tuple(first.tolist())} matches no label colour; colours must equal a label "
             "colour exactly (GET /v1/labels)",
+            ("mesh", where, index),
         )
     return mapped[inverse.reshape(-1)]
 
@@ -283,9 +515,9 @@ def _face_labels(
     face, vertex = ply["face"], ply["vertex"]
     n = limits.num_labels
     if (prop := _property(face, LABEL_NAMES)) is not None:
-        return _check_ids(np.asarray(face.data[prop.name]), f"face property '{prop.name}'", n)[source]
+        return _check_ids(np.asarray(face.data[prop.name]), f"face property '{prop.name}'", n, "face")[source]
     if (prop := _property(vertex, LABEL_NAMES)) is not None:
-        ids = _check_ids(np.asarray(vertex.data[prop.name]), f"vertex property '{prop.name}'", n)
+        ids = _check_ids(np.asarray(vertex.data[prop.name]), f"vertex property '{prop.name}'", n, "vertex")
         return _majority(ids, tris)
     if _has_colour(face):
         return _colour_ids(face.data, "face", n)[source]
@@ -294,6 +526,7 @@ def _face_labels(
     raise _fail(
         "no_labelled_face",
         "the PLY has no semantic labels: add a face or vertex property 'label' (or label colours)",
+        HEADER,
     )
 
 
@@ -308,10 +541,10 @@ def read_submap_ply(data: bytes, limits: MeshLimits = MeshLimits()) -> SemanticM
     n_faces, n_vertices = header["face"].count, header["vertex"].count
     if n_faces > limits.max_faces:
         raise _fail(
-            "too_many_faces", f"the mesh has {n_faces} faces; at most {limits.max_faces} are accepted"
+            "too_many_faces", f"the mesh has {n_faces} faces; at most {limits.max_faces} are accepted", HEADER
         )
     if n_faces == 0 or n_vertices == 0:
-        raise _fail("empty_mesh", f"the mesh is empty ({n_vertices} vertices, {n_faces} faces)")
+        raise _fail("empty_mesh", f"the mesh is empty ({n_vertices} vertices, {n_faces} faces)", HEADER)
     _check_body_size(header, data[offset:])
     ply = _read_body(data, header, offset, index_name)
 
@@ -319,10 +552,11 @@ def read_submap_ply(data: bytes, limits: MeshLimits = MeshLimits()) -> SemanticM
     vertices = np.stack([np.asarray(vertex[a], dtype=np.float64) for a in "xyz"], axis=1)
     finite = np.all(np.isfinite(vertices), axis=1)
     if not np.all(finite):
+        first = int(np.flatnonzero(~finite)[0])
         raise _fail(
             "non_finite_coordinates",
-            f"{np.count_nonzero(~finite)} vertices have NaN or infinite coordinates "
-            f"(first: vertex {np.flatnonzero(~finite)[0]})",
+            f"{np.count_nonzero(~finite)} vertices have NaN or infinite coordinates (first: vertex {first})",
+            ("mesh", "vertex", first),
         )
     extent = float(np.abs(vertices).max())
     if extent > limits.max_coordinate_m:
@@ -331,17 +565,21 @@ def read_submap_ply(data: bytes, limits: MeshLimits = MeshLimits()) -> SemanticM
             "coordinate_limit",
             f"vertex {far} is {extent:.1f} m from the local origin on an axis; coordinates must be "
             f"within {limits.max_coordinate_m:g} m (split the submap or re-centre its local frame)",
+            ("mesh", "vertex", far),
         )
     tris, source = _triangulate(np.asarray(ply["face"].data[index_name]), n_vertices)
     if len(tris) > limits.max_faces:
         raise _fail(
             "too_many_faces",
             f"the mesh has {len(tris)} triangles after triangulating polygons; at most {limits.max_faces}",
+            ("mesh", "face"),
         )
     labels = _face_labels(ply, tris, source, limits)
     if not np.any(labels != UNLABELED):
         raise _fail(
-            "no_labelled_face", "every face is unlabeled (label 0); at least one labelled face is needed"
+            "no_labelled_face",
+            "every face is unlabeled (label 0); at least one labelled face is needed",
+            ("mesh", "face"),
         )
     return SemanticMesh(vertices=vertices, faces=tris, face_labels=labels.astype(np.int64))
 
@@ -437,7 +675,9 @@ def read_fused_ply(data: bytes) -> FusedMesh:
     for element, names in (("vertex", ("label", "confidence")), ("face", ("label",))):
         for name in names:
             if _property(header[element], (name,)) is None:
-                raise _fail("missing_property", f"{element} property '{name}' is missing from the fused PLY")
+                raise _fail(
+                    "missing_property", f"{element} property '{name}' is missing from the fused PLY", HEADER
+                )
     _check_body_size(header, data[offset:])
     ply = _read_body(data, header, offset, index_name)
     vertex, face = ply["vertex"].data, ply["face"].data

@@ -212,6 +212,12 @@ def test_openapi_is_complete(client: TestClient) -> None:
     assert "multipart/form-data" in upload_op["requestBody"]["content"]
     assert {"Problem", "SubmapMeta", "TilePublic", "JobPublic"} <= set(spec["components"]["schemas"])
     assert "HTTPValidationError" not in spec["components"]["schemas"]
+    errors = spec["components"]["schemas"]["Problem"]["properties"]["errors"]
+    assert {"$ref": "#/components/schemas/ValidationErrorItem"} in [
+        option.get("items") for option in errors.get("anyOf", [errors])
+    ]
+    item = spec["components"]["schemas"]["ValidationErrorItem"]
+    assert {"loc", "msg", "type"} <= set(item["required"])
 
 
 def test_migrations_match_models(database_url: str) -> None:

@@ -170,7 +170,8 @@ def test_non_unit_quaternion_is_422(
     ids=["syntax", "array", "negative-seq", "missing-fields", "bad-time", "unknown-field"],
 )
 def test_bad_meta_is_422(client: TestClient, auth: dict[str, dict[str, str]], meta: str) -> None:
-    _assert_problem(upload(client, auth["vehicle"], meta, make_ply()), 422, "invalid_meta")
+    body = _assert_problem(upload(client, auth["vehicle"], meta, make_ply()), 422, "invalid_meta")
+    assert body["errors"] and all(e["loc"][0] == "meta" and e["msg"] and e["type"] for e in body["errors"])
 
 
 @pytest.mark.parametrize("missing", ["meta", "mesh", "both"])
@@ -178,14 +179,66 @@ def test_missing_part_is_422(client: TestClient, auth: dict[str, dict[str, str]]
     meta = None if missing in ("meta", "both") else make_meta()
     mesh = None if missing in ("mesh", "both") else make_ply()
     body = _assert_problem(upload(client, auth["vehicle"], meta, mesh), 422, "missing_part")
-    assert body["errors"]
+    expected = ["meta", "mesh"] if missing == "both" else [missing]
+    assert [e["loc"] for e in body["errors"]] == [["body", name] for name in expected]
+
+
+# where each of BAD_MESHES is broken: the start of its errors[0].loc
+BAD_MESH_LOCS: dict[str, list[Any]] = {
+    "malformed_ply": ["mesh", "header"],
+    "truncated_ply": ["mesh", "face"],  # the last face's bytes are cut
+    "non_finite_coordinates": ["mesh", "vertex", 0],
+    "coordinate_limit": ["mesh", "vertex", 0],
+    "unknown_label": ["mesh", "face", 0],
+    "no_labelled_face": ["mesh", "face"],
+    "empty_mesh": ["mesh", "header"],
+    "missing_property": ["mesh", "header"],
+    "bad_vertex_index": ["mesh", "face", 0],
+    "count_mismatch": ["mesh", "vertex", 4],  # the header says 5 vertices, the data stops at 4 rows
+}
 
 
 @pytest.mark.parametrize("code", sorted(BAD_MESHES))
 def test_each_mesh_error_is_422_with_code(
     client: TestClient, auth: dict[str, dict[str, str]], code: str
 ) -> None:
-    _assert_problem(upload(client, auth["vehicle"], make_meta(), BAD_MESHES[code]), 422, code)
+    body = _assert_problem(upload(client, auth["vehicle"], make_meta(), BAD_MESHES[code]), 422, code)
+    assert body["type"] == f"urn:fleetmap:problem:{code}"
+    assert len(body["errors"]) == 1, body
+    (error,) = body["errors"]
+    expected = BAD_MESH_LOCS[code]
+    assert error["loc"][: len(expected)] == expected, error
+    assert error["type"] == code and error["msg"] == body["detail"]
+
+
+def test_mesh_error_loc_names_the_corrupted_face(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
+    mesh = make_ply(n=40, labels=[1] * 57 + [99] + [1] * 22)
+    body = _assert_problem(upload(client, auth["vehicle"], make_meta(), mesh), 422, "unknown_label")
+    assert body["errors"][0]["loc"] == ["mesh", "face", 57]
+
+
+def test_meta_errors_carry_json_paths(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
+    bad_q = make_meta(gps={"pose": {"t": [0, 0, 0], "q": [1.1, 0, 0, 0]}})
+    body = _assert_problem(upload(client, auth["vehicle"], bad_q, make_ply()), 422, "invalid_meta")
+    assert [e["loc"] for e in body["errors"]] == [["meta", "gps", "pose", "q"]]
+    assert body["errors"][0]["type"] == "value_error"
+    geodetic = make_meta(gps={"lat": 95.0, "lon": 11.0, "alt": 0.0, "q": [1, 0, 0, 0]})
+    body = _assert_problem(upload(client, auth["vehicle"], geodetic, make_ply()), 422, "invalid_meta")
+    assert [e["loc"] for e in body["errors"]] == [["meta", "gps", "lat"]]
+    body = _assert_problem(upload(client, auth["vehicle"], make_meta(gps=3), make_ply()), 422, "invalid_meta")
+    assert [e["loc"] for e in body["errors"]] == [["meta", "gps"]]
+    body = _assert_problem(upload(client, auth["vehicle"], make_meta(seq=-1), make_ply()), 422, "invalid_meta")
+    assert [(e["loc"], e["type"]) for e in body["errors"]] == [(["meta", "seq"], "greater_than_equal")]
+
+
+def test_malformed_multipart_is_400_with_errors(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
+    resp = client.post(
+        "/v1/submaps",
+        content=b"--b\r\nContent-Disposition: form-data\r\n\r\nx\r\n--b--\r\n",
+        headers={**auth["vehicle"], "Content-Type": "multipart/form-data; boundary=b"},
+    )
+    body = _assert_problem(resp, 400)
+    assert body["errors"] and body["errors"][0]["loc"] == ["body"]
     assert _counts(client) == (0, 0, 0)
     assert _blob_files(client) == []
 

@@ -93,12 +93,17 @@ def test_list_tiles_bad_parameters(client: TestClient, auth: dict[str, dict[str,
         ({"cursor": "!!garbage"}, "invalid_cursor"),
         ({"bbox": "1,2,3"}, "invalid_bbox"),
         ({"bbox": "5,0,1,1"}, "invalid_bbox"),
+        ({"bbox": "0,0,nan,1"}, "invalid_bbox"),
         ({"state": "sleeping"}, "invalid_request"),
         ({"limit": 0}, "invalid_request"),
     ]:
         resp = client.get("/v1/tiles", params=params, headers=auth["reader"])
         assert resp.status_code == 422 and resp.headers["content-type"].startswith(PROBLEM), params
-        assert resp.json()["code"] == code
+        body = resp.json()
+        assert body["code"] == code
+        (name,) = params
+        assert body["errors"] and [e["loc"] for e in body["errors"]] == [["query", name]], body
+        assert all(e["msg"] and e["type"] for e in body["errors"])
     assert client.get("/v1/tiles", params={"state": "x"}, headers=auth["reader"]).json()["errors"]
 
 
@@ -178,7 +183,8 @@ def test_mesh_download_etag_and_versions(client: TestClient, auth: dict[str, dic
     assert glb_filtered.status_code == 200 and glb_filtered.content[:4] == b"glTF"
 
     assert client.get("/v1/tiles/0/0/mesh", params={"format": "obj"}, headers=h).status_code == 422
-    assert client.get("/v1/tiles/0/0/mesh", params={"min_confidence": 2}, headers=h).status_code == 422
+    bad = client.get("/v1/tiles/0/0/mesh", params={"min_confidence": 2}, headers=h)
+    assert bad.status_code == 422 and bad.json()["errors"][0]["loc"] == ["query", "min_confidence"]
     assert client.get("/v1/tiles/0/0/mesh", headers=auth["vehicle"]).status_code == 403
 
     # a second version: the latest moves on, version 1 stays what it was

@@ -17,8 +17,8 @@ from fusion.labels import NUM_CLASSES
 from fusion.meshio import MeshLimits, read_submap_ply
 from fusion.tiles import home_tile, submap_tiles
 from fusion.types import Pose, Sigma
-from service.api.problems import ProblemError
-from service.api.schemas import GpsPose, SubmapMeta
+from service.api.problems import ProblemError, validation_error
+from service.api.schemas import UNION_TAGS, GpsPose, SubmapMeta
 from service.settings import Settings
 from service.store.submaps import NewSubmap
 
@@ -28,14 +28,20 @@ def parse_meta(raw: bytes | str) -> SubmapMeta:
     try:
         data = json.loads(raw)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ProblemError(422, f"meta is not valid JSON: {exc}", code="invalid_meta") from exc
+        msg = f"meta is not valid JSON: {exc}"
+        errors = [validation_error(["meta"], msg, "json_invalid")]
+        raise ProblemError(422, msg, code="invalid_meta", errors=errors) from exc
     if not isinstance(data, dict):
-        raise ProblemError(422, "meta must be a JSON object", code="invalid_meta")
+        msg = "meta must be a JSON object"
+        raise ProblemError(422, msg, code="invalid_meta", errors=[validation_error(["meta"], msg, "dict_type")])
     try:
         return SubmapMeta.model_validate(data)
     except ValidationError as exc:
         errors = [
-            {"loc": ["meta", *err["loc"]], "msg": err["msg"], "type": err["type"]} for err in exc.errors()
+            validation_error(
+                ["meta", *(part for part in err["loc"] if part not in UNION_TAGS)], err["msg"], err["type"]
+            )
+            for err in exc.errors()
         ]
         raise ProblemError(422, "meta is invalid", code="invalid_meta", errors=errors) from exc
 

@@ -8,7 +8,7 @@ library's typed errors, oversized bodies, an unavailable database, and anything 
 from __future__ import annotations
 
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from http import HTTPStatus
 from typing import Any
 
@@ -30,6 +30,19 @@ PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:fleetmap:problem:"
 
 
+class ValidationErrorItem(BaseModel):
+    """One validation failure: where (``loc``), what (``msg``) and a short machine code (``type``)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    loc: list[str | int] = Field(
+        description="Path to the offending input: part or parameter first, then names and indices",
+        examples=[["mesh", "face", 1234], ["meta", "gps", "pose", "q"], ["query", "bbox"]],
+    )
+    msg: str = Field(examples=["face 1234 refers to vertex 9, but vertex indices must be in 0..2"])
+    type: str = Field(examples=["bad_vertex_index"])
+
+
 class Problem(BaseModel):
     """An RFC 9457 problem document; ``code`` is a stable machine-readable reason."""
 
@@ -40,8 +53,9 @@ class Problem(BaseModel):
     status: int = Field(examples=[422])
     detail: str | None = Field(default=None, examples=["mesh has 3000000 faces, at most 2000000 allowed"])
     code: str | None = Field(default=None, examples=["too_many_faces"])
-    errors: list[dict[str, Any]] | None = Field(
-        default=None, description="Validation failures: one entry per offending field"
+    errors: list[ValidationErrorItem] | None = Field(
+        default=None,
+        description="Validation failures (every 400 and 422): one entry per offending field, never empty",
     )
 
 
@@ -74,6 +88,14 @@ class BodyTooLargeError(ProblemError):
         super().__init__(413, f"request body exceeds the limit of {limit} bytes", code="body_too_large")
 
 
+VALIDATION_STATUSES = (400, 422)  # validation failures: their problems always carry ``errors``
+
+
+def validation_error(loc: Sequence[str | int], msg: str, type_: str) -> dict[str, Any]:
+    """One ``errors`` entry (``ValidationErrorItem``)."""
+    return {"loc": list(loc), "msg": msg, "type": type_}
+
+
 def problem_body(
     status: int,
     detail: str | None = None,
@@ -95,6 +117,8 @@ def problem_body(
     }
     if code:
         body["code"] = code
+    if not errors and status in VALIDATION_STATUSES:
+        errors = [validation_error(["request"], detail or body["title"], code or "invalid_request")]
     if errors is not None:
         body["errors"] = errors
     return body
@@ -135,7 +159,10 @@ async def _handle_problem(_request: Request, exc: Exception) -> JSONResponse:
 async def _handle_http(_request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     detail = exc.detail if isinstance(exc.detail, str) else None
-    return problem_response(exc.status_code, detail, headers=dict(exc.headers or {}))
+    errors = None
+    if exc.status_code == 400:  # Starlette's only 400s: a body (multipart form) it cannot parse
+        errors = [validation_error(["body"], detail or "malformed request body", "malformed_body")]
+    return problem_response(exc.status_code, detail, errors=errors, headers=dict(exc.headers or {}))
 
 
 async def _handle_validation(_request: Request, exc: Exception) -> JSONResponse:
@@ -147,7 +174,10 @@ async def _handle_validation(_request: Request, exc: Exception) -> JSONResponse:
 async def _handle_fusion(_request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, FusionLibraryError)
     if isinstance(exc, MeshValidationError | PoseError):
-        return problem_response(422, exc.message, code=exc.code)
+        part = "mesh" if isinstance(exc, MeshValidationError) else "meta"
+        loc = list(exc.loc) if exc.loc else [part]
+        errors = [validation_error(loc, exc.message, exc.code)]
+        return problem_response(422, exc.message, code=exc.code, errors=errors)
     log.error("fusion library error: %s", exc.message)
     return problem_response(500, exc.message, code=exc.code)
 

@@ -10,7 +10,7 @@ import math
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
 
 from fusion.types import UNIT_QUATERNION_TOLERANCE
 
@@ -78,6 +78,22 @@ class GpsGeodetic(BaseModel):
         return normalise_quaternion(q)
 
 
+def _gps_kind(value: Any) -> str | None:
+    """Which GPS form an input is (so errors name only its fields); None: neither, an error."""
+    if isinstance(value, dict):
+        return "GpsPose" if "pose" in value else "GpsGeodetic"
+    if isinstance(value, GpsPose | GpsGeodetic):
+        return type(value).__name__
+    return None
+
+
+GpsChoice = Annotated[
+    Annotated[GpsPose, Tag("GpsPose")] | Annotated[GpsGeodetic, Tag("GpsGeodetic")],
+    Discriminator(_gps_kind),
+]
+UNION_TAGS = frozenset({"GpsPose", "GpsGeodetic"})  # pydantic puts the chosen tag in error locations
+
+
 class Sigma(BaseModel):
     """1-sigma pose uncertainty."""
 
@@ -96,7 +112,7 @@ class SubmapMeta(BaseModel):
     session_id: str = Field(min_length=1, max_length=255, examples=["veh-042/2026-11-24T08:00:00Z"])
     seq: int = Field(ge=0, lt=2**31, examples=[17])
     captured_at: AwareDatetime
-    gps: GpsPose | GpsGeodetic
+    gps: GpsChoice
     gps_sigma: Sigma = Sigma(trans_m=2.0, rot_deg=2.0)
     odometry: Pose
     odometry_sigma: Sigma = Sigma(trans_m=0.05, rot_deg=0.5)

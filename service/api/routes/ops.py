@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from importlib import resources
+from typing import Any
 
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import HTMLResponse
@@ -38,7 +39,7 @@ def healthz() -> Health:
 def readyz(request: Request, settings: SettingsDep) -> Readiness:
     """Database, broker (skipped when embedded) and blob store reachable; 503 otherwise."""
     checks: dict[str, str] = {}
-    failures: list[dict[str, str]] = []
+    failures: list[dict[str, Any]] = []
     probes = {
         "database": lambda: ping(request.app.state.engine),
         "blob_store": lambda: request.app.state.blobs.ping(),
@@ -53,7 +54,9 @@ def readyz(request: Request, settings: SettingsDep) -> Readiness:
             checks[name] = "ok"
         except Exception as exc:  # noqa: BLE001 - any failure means "not ready"
             log.warning("readiness check %s failed: %s", name, exc)
-            failures.append({"component": name, "msg": exc.__class__.__name__})
+            failures.append(
+                {"component": name, "loc": [name], "msg": exc.__class__.__name__, "type": "unreachable"}
+            )
     if failures:
         names = ", ".join(f["component"] for f in failures)
         raise ProblemError(503, f"not ready: {names} unreachable", code="not_ready", errors=failures)

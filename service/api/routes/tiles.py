@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 
 from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
 from service.api.deps import BlobsDep, Operator, Reader, SessionDep, SettingsDep
-from service.api.problems import ProblemError, problem_responses
+from service.api.problems import ProblemError, problem_responses, validation_error
 from service.api.schemas import FuseAccepted, TileLinks, TilePage, TilePublic
 from service.schedule import request_fusion
 from service.store.blobs import BlobNotFoundError, BlobStore
@@ -107,7 +107,9 @@ def _decode_cursor(cursor: str) -> tuple[int, int]:
         i, j = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
         return int(i), int(j)
     except (binascii.Error, ValueError, TypeError, UnicodeDecodeError) as exc:
-        raise ProblemError(422, "cursor is not one this API returned", code="invalid_cursor") from exc
+        msg = "cursor is not one this API returned"
+        errors = [validation_error(["query", "cursor"], msg, "invalid_cursor")]
+        raise ProblemError(422, msg, code="invalid_cursor", errors=errors) from exc
 
 
 def _parse_bbox(bbox: str, size: float) -> tuple[int, int, int, int]:
@@ -115,11 +117,13 @@ def _parse_bbox(bbox: str, size: float) -> tuple[int, int, int, int]:
     try:
         xmin, ymin, xmax, ymax = (float(v) for v in bbox.split(","))
     except ValueError as exc:
-        raise ProblemError(422, "bbox is 'xmin,ymin,xmax,ymax' in metres", code="invalid_bbox") from exc
+        msg = "bbox is 'xmin,ymin,xmax,ymax' in metres"
+        errors = [validation_error(["query", "bbox"], msg, "invalid_bbox")]
+        raise ProblemError(422, msg, code="invalid_bbox", errors=errors) from exc
     if not all(math.isfinite(v) for v in (xmin, ymin, xmax, ymax)) or xmin > xmax or ymin > ymax:
-        raise ProblemError(
-            422, "bbox needs finite values with xmin <= xmax and ymin <= ymax", code="invalid_bbox"
-        )
+        msg = "bbox needs finite values with xmin <= xmax and ymin <= ymax"
+        errors = [validation_error(["query", "bbox"], msg, "invalid_bbox")]
+        raise ProblemError(422, msg, code="invalid_bbox", errors=errors)
     return math.floor(xmin / size), math.floor(ymin / size), math.floor(xmax / size), math.floor(ymax / size)
 
 
