@@ -217,7 +217,7 @@ def extract_mesh(
     if not ((vol > 0).any() and (vol < 0).any()):
         return FusedMesh.empty(), border, stats
     # skimage's "descent" winding makes right-hand face normals point to s > 0 (free space); pinned by
-    # the sphere test in tests/test_extract.py
+    # the sphere test in tests/fusion/test_extract.py
     try:
         verts_idx, faces, _, _ = marching_cubes(vol, level=0.0, gradient_direction="descent", allow_degenerate=False,
                                                 mask=cube_mask(mask))

@@ -16,7 +16,7 @@ import pytest
 from fusion.meshio import read_fused_ply
 from tests.worker_support import mesh_bytes, upload, wait_for
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def free_port() -> int:

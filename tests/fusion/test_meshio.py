@@ -610,5 +610,5 @@ def test_filter_confidence_reindexes_after_a_dropped_vertex() -> None:
 
 def test_io_and_geometry_modules_do_not_import_torch() -> None:
     code = "import sys, fusion.meshio, fusion.geo, fusion.tiles; sys.exit('torch' in sys.modules)"
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     assert subprocess.run([sys.executable, "-c", code], cwd=root, check=False).returncode == 0

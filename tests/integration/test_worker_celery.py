@@ -24,7 +24,7 @@ from service import schedule as scheduler
 from service.store.models import FusionJob
 from tests.worker_support import api, make_settings, session_factory, upload, wait_for
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]

@@ -1,0 +1,65 @@
+"""The job runner's outcomes and attempt counting (in-process, SQLite, a fake fusion).
+
+``fusion_jobs.attempts`` counts runs that failed or whose worker died (the sweeper gives up after
+``MAX_ATTEMPTS``); a graceful stop hands the job back without burning one.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from fusion.errors import FusionError
+from service import schedule
+from service.store.models import FusionJob, JobState, Tile, TileState
+from tests.worker_support import FakeFusion, api, make_settings, session_factory, upload
+from worker import runner
+from worker.results import Outcome
+from worker.runner import WorkerShutdown, run_fusion_job
+
+
+@pytest.fixture
+def env(tmp_path: Any) -> Any:
+    settings = make_settings(tmp_path)
+    with api(settings) as client:
+        client.settings = settings  # type: ignore[attr-defined]
+        client.db = session_factory(client.app)  # type: ignore[attr-defined]
+        upload(client, "veh-1/a", 0, [10.0, 10.0, 0.0])
+        with client.db() as db:
+            client.job_id = schedule.request_fusion(db, 0, 0, settings=settings).id  # type: ignore[attr-defined]
+        yield client
+
+
+def _run(env: Any) -> Outcome:
+    return run_fusion_job(env.job_id, env.settings, session_factory=env.db, blob_store=env.app.state.blobs)
+
+
+def _job_and_tile(env: Any) -> tuple[FusionJob, Tile]:
+    with env.db() as db:
+        return db.get(FusionJob, env.job_id), db.get(Tile, (0, 0))
+
+
+def test_a_stopped_worker_hands_its_job_back_without_burning_an_attempt(
+    env: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for _ in range(3):  # more graceful stops than MAX_ATTEMPTS: the job must stay runnable
+        monkeypatch.setattr(runner, "_fuse", FakeFusion(error=WorkerShutdown()))  # type: ignore[arg-type]
+        with pytest.raises(WorkerShutdown):
+            _run(env)
+        job, tile = _job_and_tile(env)
+        assert (job.state, job.attempts, tile.state) == (JobState.queued.value, 0, TileState.queued.value)
+        assert tile.lease_owner is None
+    monkeypatch.setattr(runner, "_fuse", FakeFusion())
+    assert _run(env) is Outcome.succeeded
+    job, tile = _job_and_tile(env)
+    assert (job.state, job.attempts, tile.state) == (JobState.succeeded.value, 1, TileState.fused.value)
+
+
+def test_a_failed_fusion_counts_its_attempt(env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(runner, "_fuse", FakeFusion(error=FusionError("nothing to fuse", code="empty_tile")))
+    assert _run(env) is Outcome.failed
+    job, tile = _job_and_tile(env)
+    assert (job.state, job.attempts, tile.state) == (JobState.failed.value, 1, TileState.failed.value)
+    assert tile.last_error == "empty_tile: nothing to fuse"
+    assert _run(env) is Outcome.skipped  # a finished job is not run again
