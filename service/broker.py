@@ -10,13 +10,19 @@ limit. The tile lease and the idempotent job runner make a second delivery harml
 
 from __future__ import annotations
 
+import logging
+from functools import lru_cache
 from typing import Any
 
 from celery import Celery
 
-from service.settings import Settings
+from service.settings import Settings, get_settings
 
-TASK_FUSE_TILE = "fleetmap.fuse_tile"
+log = logging.getLogger(__name__)
+
+TASK_FUSE_TILE = "fleetmap.fuse_tile"  # a reconstruct job: one tile
+TASK_ALIGN_REGION = "fleetmap.align_region"  # an align job: a region's poses
+TASKS = {"reconstruct": TASK_FUSE_TILE, "align": TASK_ALIGN_REGION}
 # Seconds past the soft limit (FLEETMAP_FUSION_TIME_LIMIT_S) before the hard kill, and of the broker's
 # redelivery beyond that.
 HARD_LIMIT_GRACE_S = 300.0
@@ -44,7 +50,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "task_soft_time_limit": soft,
         "task_time_limit": hard,
         "task_default_queue": settings.fusion_queue,
-        "task_routes": {TASK_FUSE_TILE: {"queue": settings.fusion_queue}},
+        "task_routes": {name: {"queue": settings.fusion_queue} for name in TASKS.values()},
         "broker_transport_options": transport,
         "result_backend_transport_options": transport,
         "broker_connection_retry_on_startup": True,
@@ -59,3 +65,32 @@ def make_celery(settings: Settings) -> Celery:
     celery = Celery("fleetmap", broker=settings.broker_url or "memory://", set_as_current=False)
     celery.conf.update(celery_config(settings))
     return celery
+
+
+@lru_cache(maxsize=4)
+def _producer(broker_url: str, queue: str) -> Any:
+    # The Celery app is built only when a broker is configured.
+    return make_celery(get_settings().model_copy(update={"broker_url": broker_url, "fusion_queue": queue}))
+
+
+def enqueue(job_id: str, settings: Settings | None = None, kind: str = "reconstruct") -> bool:
+    """Hand job ``job_id`` (of ``kind``) to the workers; True when a broker message was sent.
+
+    Embedded deployments (no broker) send nothing: the embedded worker polls for queued jobs. A broker
+    error is logged, not raised: the job row is committed and the sweeper sends it again later.
+    """
+    settings = settings or get_settings()
+    if settings.embedded:
+        return False
+    try:
+        _producer(settings.broker_url, settings.fusion_queue).send_task(
+            TASKS[kind],
+            args=[job_id],
+            queue=settings.fusion_queue,
+            retry=True,
+            retry_policy={"max_retries": 2, "interval_start": 0.2, "interval_step": 0.5},
+        )
+    except Exception as exc:  # broker unreachable: the sweeper retries, the API must not fail
+        log.warning("could not enqueue fusion job %s (%s); the sweeper will retry", job_id, exc)
+        return False
+    return True

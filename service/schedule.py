@@ -20,17 +20,28 @@ import logging
 import threading
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
-from functools import lru_cache
 from typing import Any
 
 from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.sql.elements import ColumnElement
 
-from service.broker import TASK_FUSE_TILE
+from fusion.regions import Region, regions
+from service.broker import enqueue
 from service.settings import Settings, get_settings
 from service.store import tiles
-from service.store.models import FusionJob, JobState, JobTrigger, Tile, TileState, new_id, utcnow
+from service.store.models import (
+    FusionJob,
+    JobKind,
+    JobState,
+    JobTrigger,
+    Submap,
+    SubmapTile,
+    Tile,
+    TileState,
+    new_id,
+    utcnow,
+)
 
 log = logging.getLogger(__name__)
 
@@ -51,37 +62,6 @@ class TickReport:
 
 
 # --------------------------------------------------------------------------------------------- enqueue
-
-
-@lru_cache(maxsize=4)
-def _producer(broker_url: str, queue: str) -> Any:
-    # Lazy: the Celery app is built only when a broker is configured.
-    from service.broker import make_celery
-
-    return make_celery(get_settings().model_copy(update={"broker_url": broker_url, "fusion_queue": queue}))
-
-
-def enqueue(job_id: str, settings: Settings | None = None) -> bool:
-    """Hand job ``job_id`` to the workers; True when a broker message was sent.
-
-    Embedded deployments (no broker) send nothing: the embedded worker polls for queued jobs. A broker
-    error is logged, not raised: the job row is committed and the sweeper sends it again later.
-    """
-    settings = settings or get_settings()
-    if settings.embedded:
-        return False
-    try:
-        _producer(settings.broker_url, settings.fusion_queue).send_task(
-            TASK_FUSE_TILE,
-            args=[job_id],
-            queue=settings.fusion_queue,
-            retry=True,
-            retry_policy={"max_retries": 2, "interval_start": 0.2, "interval_step": 0.5},
-        )
-    except Exception as exc:  # broker unreachable: the sweeper retries, the API must not fail
-        log.warning("could not enqueue fusion job %s (%s); the sweeper will retry", job_id, exc)
-        return False
-    return True
 
 
 # ------------------------------------------------------------------------------------------ scheduling
@@ -108,44 +88,84 @@ def _due(now: datetime, settings: Settings) -> ColumnElement[bool]:
 def _queue_tile(
     db: Session, i: int, j: int, condition: ColumnElement[bool], trigger: str, now: datetime
 ) -> FusionJob | None:
-    """Move tile (i, j) to ``queued`` with a new job if ``condition`` still holds; commit. None if not."""
+    """Move tile (i, j) to ``queued`` with a new reconstruct job if ``condition`` still holds; commit."""
     job_id = new_id()
     if not tiles.queue(db, i, j, job_id=job_id, condition=condition, now=now):
         db.rollback()
         return None
     generation = db.execute(select(Tile.dirty_generation).where(Tile.i == i, Tile.j == j)).scalar_one()
-    job = FusionJob(
-        id=job_id,
-        tile_i=i,
-        tile_j=j,
-        state=JobState.queued.value,
-        trigger=trigger,
-        generation=generation,
-        created_at=now,
-        enqueued_at=now,
-    )
+    job = FusionJob(id=job_id, tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
+                    trigger=trigger, generation=generation, created_at=now, enqueued_at=now)
     db.add(job)
     db.commit()
     return job
 
 
+def _queue_alignment(
+    db: Session, region: Region, condition: ColumnElement[bool], trigger: str, now: datetime
+) -> FusionJob | None:
+    """Move every tile of ``region`` to ``queued`` under one new align job if ``condition`` holds for
+    each; commit. None (nothing written) if one of them is not ready."""
+    job_id = new_id()
+    for i, j in region.tiles:
+        if not tiles.queue(db, i, j, job_id=job_id, condition=condition, now=now):
+            db.rollback()
+            return None
+    (i0, j0) = region.tiles[0]
+    job = FusionJob(id=job_id, tile_i=i0, tile_j=j0, kind=JobKind.align.value, tiles=[list(t) for t in region.tiles],
+                    state=JobState.queued.value, trigger=trigger, created_at=now, enqueued_at=now)
+    db.add(job)
+    db.commit()
+    return job
+
+
+def unaligned_regions(db: Session) -> list[Region]:
+    """The regions of the submaps no alignment has placed yet (``pose_refined`` null): tiles linked by
+    those submaps (``fusion.regions``). Aligned submaps only join an alignment as its fixed map."""
+    rows = db.execute(
+        select(SubmapTile.submap_id, SubmapTile.i, SubmapTile.j)
+        .join(Submap, Submap.id == SubmapTile.submap_id)
+        .where(Submap.pose_refined.is_(None))
+    ).all()
+    tile_sets: dict[str, list[tuple[int, int]]] = {}
+    for submap_id, i, j in rows:
+        tile_sets.setdefault(submap_id, []).append((i, j))
+    return regions(tile_sets)
+
+
 def schedule_due_tiles(db: Session, now: datetime, settings: Settings) -> list[FusionJob]:
-    """Queue every due tile (one conditional UPDATE each); returns the jobs this process created."""
+    """Queue due work; returns the jobs this process created. A region of unaligned submaps gets one
+    align job once every tile of it is due (a burst over several tiles settles first); due tiles
+    holding only aligned submaps get a reconstruct job each."""
     condition = _due(now, settings)
     candidates = db.execute(
-        select(Tile.i, Tile.j)
-        .where(condition)
-        .order_by(tiles.owns_submaps(Tile.i, Tile.j).desc(), Tile.dirty_since)
-        .limit(TICK_BATCH)
+        select(Tile.i, Tile.j).where(condition).order_by(Tile.dirty_since).limit(TICK_BATCH)
     ).all()
+    pending = unaligned_regions(db) if candidates else []
     db.rollback()  # end the read transaction before writing (SQLite: no stale snapshot)
+    due = {(int(i), int(j)) for i, j in candidates}
     jobs = []
+    for region in pending:
+        if due.issuperset(region.tiles):
+            job = _queue_alignment(db, region, condition, JobTrigger.auto.value, now)
+            if job is not None:
+                log.info("region %s queued for alignment, job %s", list(region.tiles), job.id)
+                jobs.append(job)
+        due.difference_update(region.tiles)  # waits for its alignment
     for i, j in candidates:
-        job = _queue_tile(db, i, j, condition, JobTrigger.auto.value, now)
-        if job is not None:
-            log.info("tile (%d, %d) queued for fusion, job %s", i, j, job.id)
+        if (i, j) in due and (job := _queue_tile(db, i, j, condition, JobTrigger.auto.value, now)) is not None:
+            log.info("tile (%d, %d) queued for reconstruction, job %s", i, j, job.id)
             jobs.append(job)
     return jobs
+
+
+def _active_job(db: Session, i: int, j: int) -> FusionJob | None:
+    """The queued or running job covering tile (i, j): its tile's current job."""
+    tile = db.get(Tile, (i, j))
+    if tile is None or tile.job_id is None:
+        return None
+    job = db.get(FusionJob, tile.job_id)
+    return job if job is not None and job.state in ACTIVE_JOB_STATES else None
 
 
 def request_fusion(
@@ -158,30 +178,34 @@ def request_fusion(
     now: datetime | None = None,
 ) -> FusionJob:
     """Queue a (re-)fusion of tile (i, j) and return its job, or the job already queued or running.
+    A tile holding unaligned submaps gets its region's alignment (which then reconstructs it).
 
     Raises ``LookupError`` if the tile does not exist. Commits.
     """
     settings = settings or get_settings()
     now = now or utcnow()
+    idle = Tile.state.not_in(tiles.BUSY_STATES)
     for _ in range(3):
-        job = _queue_tile(db, i, j, Tile.state.not_in(tiles.BUSY_STATES), trigger, now)
-        if job is not None:
-            enqueue(job.id, settings)
-            return job
-        tile = db.get(Tile, (i, j))
-        if tile is None:
+        if db.get(Tile, (i, j)) is None:
             raise LookupError(f"tile ({i}, {j}) does not exist")
-        active = db.execute(
-            select(FusionJob)
-            .where(FusionJob.tile_i == i, FusionJob.tile_j == j, FusionJob.state.in_(ACTIVE_JOB_STATES))
-            .order_by(FusionJob.created_at.desc())
-            .limit(1)
-        ).scalar_one_or_none()
+        region = next((r for r in unaligned_regions(db) if (i, j) in r.tiles), None)
+        db.rollback()
+        if region is not None:
+            job = _queue_alignment(db, region, idle, trigger, now)
+            busy = [t for t in region.tiles if _active_job(db, *t) is not None]
+        else:
+            job = _queue_tile(db, i, j, idle, trigger, now)
+            busy = [(i, j)] if _active_job(db, i, j) is not None else []
+        if job is not None:
+            enqueue(job.id, settings, job.kind)
+            return job
+        active = _active_job(db, *(busy[0] if busy else (i, j)))
         if active is not None:
             db.commit()
             return active
         # Busy tile without an active job (inconsistent row): release it and try again.
-        tiles.unstick(db, i, j, now)
+        for key in region.tiles if region is not None else [(i, j)]:
+            tiles.unstick(db, *key, now)
         db.commit()
     raise RuntimeError(f"could not queue tile ({i}, {j}): it keeps changing state")
 
@@ -196,15 +220,15 @@ def _requeue_lost_messages(db: Session, now: datetime, settings: Settings) -> li
     cutoff = now - timedelta(seconds=settings.fuse_requeue_s)
     stale = or_(FusionJob.enqueued_at.is_(None), FusionJob.enqueued_at < cutoff)
     waiting = and_(FusionJob.state == JobState.queued.value, stale)
-    ids = db.execute(select(FusionJob.id).where(waiting).limit(TICK_BATCH)).scalars().all()
+    found = db.execute(select(FusionJob.id, FusionJob.kind).where(waiting).limit(TICK_BATCH)).all()
     db.rollback()
     sent = []
-    for job_id in ids:
+    for job_id, kind in found:
         result = db.execute(update(FusionJob).where(FusionJob.id == job_id, waiting).values(enqueued_at=now))
         db.commit()
         if result.rowcount == 1:  # type: ignore[attr-defined]
             log.warning("fusion job %s was not picked up in time; enqueueing it again", job_id)
-            enqueue(job_id, settings)
+            enqueue(job_id, settings, kind)
             sent.append(job_id)
     return sent
 
@@ -240,7 +264,7 @@ def _reclaim_expired_leases(db: Session, now: datetime, settings: Settings, repo
         else:
             assert job is not None
             log.warning("tile (%d, %d): lease of job %s expired; re-running it", i, j, job.id)
-            enqueue(job.id, settings)
+            enqueue(job.id, settings, job.kind)
             report.requeued_jobs.append(job.id)
 
 
@@ -252,8 +276,8 @@ def tick(db: Session, now: datetime | None = None, settings: Settings | None = N
     _reclaim_expired_leases(db, now, settings, report)
     report.requeued_jobs.extend(_requeue_lost_messages(db, now, settings))
     for job in schedule_due_tiles(db, now, settings):
-        enqueue(job.id, settings)
-        report.scheduled.append((job.tile_i, job.tile_j))
+        enqueue(job.id, settings, job.kind)
+        report.scheduled.extend([tuple(t) for t in job.tiles] if job.tiles else [(job.tile_i, job.tile_j)])
     return report
 
 

@@ -104,7 +104,7 @@ class FakeFusion:
     ``during`` runs inside the "fusion" (e.g. an upload that arrives meanwhile); ``error`` is raised.
     """
 
-    def __init__(self, shift: float = 0.0, error: Exception | None = None) -> None:
+    def __init__(self, shift: float = 0.0, error: BaseException | None = None) -> None:
         self.shift = shift
         self.error = error
         self.calls: list[tuple[TileSpec, list[SubmapInput]]] = []
@@ -136,3 +136,29 @@ def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, interval
             return last
         time.sleep(interval_s)
     raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}; last value {last!r}")
+
+
+class FakeAlign:
+    """Stands in for ``fusion.align.align_region``: free poses move by ``shift`` metres along x.
+
+    ``during`` runs inside the "alignment"; ``error`` is raised.
+    """
+
+    def __init__(self, shift: float = 0.0, error: BaseException | None = None) -> None:
+        self.shift = shift
+        self.error = error
+        self.calls: list[tuple[list[TileSpec], list[SubmapInput]]] = []
+        self.during: Callable[[], None] | None = None
+
+    def __call__(self, inputs: Any, keeper: Any) -> tuple[dict[str, Pose], dict[str, Any]]:
+        self.calls.append((inputs.tiles, inputs.submaps))
+        if self.during is not None:
+            self.during()
+        if self.error is not None:
+            raise self.error
+        poses = {
+            s.id: Pose(np.asarray(s.pose_init.t) + [self.shift, 0.0, 0.0], s.pose_init.q)
+            for s in inputs.submaps
+            if s.free
+        }
+        return poses, {"losses": {"total": 0.1}}

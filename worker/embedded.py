@@ -15,8 +15,7 @@ from types import FrameType
 from sqlalchemy import select
 
 from service.settings import Settings
-from service.store.models import FusionJob, JobState
-from service.store.tiles import owns_submaps
+from service.store.models import FusionJob, JobKind, JobState
 from worker.runner import Outcome, TransientJobError, WorkerShutdown, factory_for, run_fusion_job
 
 log = logging.getLogger(__name__)
@@ -30,13 +29,13 @@ def _raise_shutdown(_signum: int, _frame: FrameType | None) -> None:
 
 
 def next_queued_job(settings: Settings, skip: dict[str, float]) -> str | None:
-    """The next queued job not skipped recently: home tiles of submaps first, then the oldest."""
+    """The next queued job not skipped recently: alignments first (their tiles wait), then the oldest."""
     now = time.monotonic()
     with factory_for(settings.resolved_database_url)() as db:
         ids = db.execute(
             select(FusionJob.id)
             .where(FusionJob.state == JobState.queued.value)
-            .order_by(owns_submaps(FusionJob.tile_i, FusionJob.tile_j).desc(), FusionJob.created_at)
+            .order_by((FusionJob.kind == JobKind.align.value).desc(), FusionJob.created_at)
             .limit(len(skip) + 1)
         ).scalars()
         return next((job_id for job_id in ids if skip.get(job_id, 0.0) < now), None)

@@ -1,8 +1,9 @@
-"""What one tile fusion reads: the fusion config, the tile's submaps, neighbour border pins, and the
-input fingerprint that makes a job idempotent.
+"""What a job reads. A reconstruct job: the fusion config, the tile's aligned submaps held at their
+refined poses, the neighbours' border pins, and the input fingerprint that makes it idempotent. An
+align job: every submap touching the region's tiles, the unaligned ones free.
 
 Frames: submap meshes are in their local frame; ``pose_init`` maps local → map frame (the refined pose
-when a fusion already refined it, else the GPS pose).
+once an alignment refined it, else the GPS pose).
 """
 
 from __future__ import annotations
@@ -44,10 +45,22 @@ class TileInputs:
     fingerprint: str
     submaps: list[SubmapInput] = field(default_factory=list)
     border_pins: dict[str, Any] = field(default_factory=dict)
+    pending: int = 0  # submaps of the tile still waiting for their alignment (left out)
+
+
+@dataclass
+class RegionInputs:
+    """What an align job needs: the region's tiles and every submap touching them (unaligned ones free,
+    the others held at their refined poses: the map they are aligned against)."""
+
+    tiles: list[TileSpec]
+    config: FusionConfig
+    rows: list[tuple[Submap, Pose, bool]]  # (submap row, initial local → map pose, free)
+    submaps: list[SubmapInput] = field(default_factory=list)
 
     @property
-    def pose_init(self) -> dict[str, Pose]:
-        return {s.id: pose for s, pose, _ in self.rows}
+    def free(self) -> list[str]:
+        return [s.id for s, _, free in self.rows if free]
 
 
 def _pose_init(submap: Submap) -> Pose:
@@ -108,28 +121,41 @@ def _border_pins(db: Session, blobs: BlobStore, i: int, j: int) -> dict[str, Any
     return border_pins(i, j, border_of)
 
 
+def _submaps_touching(db: Session, keys: list[tuple[int, int]]) -> list[Submap]:
+    found: dict[str, Submap] = {}
+    for i, j in keys:
+        rows = db.execute(
+            select(Submap).join(SubmapTile, SubmapTile.submap_id == Submap.id).where(SubmapTile.i == i, SubmapTile.j == j)
+        ).scalars()
+        found.update((s.id, s) for s in rows)
+    return sorted(found.values(), key=lambda s: (s.session_id, s.seq))
+
+
 def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
-    """The submaps of tile (i, j) with their initial poses (home submaps free, others held fixed)."""
+    """The aligned submaps of tile (i, j), every one held at its refined pose (the alignment owns the
+    poses); those still waiting for an alignment are counted in ``pending`` and left out."""
     tile = TileSpec(i, j, settings.tile_size)
     config = fusion_config(settings)
-    submaps = (
-        db.execute(
-            select(Submap)
-            .join(SubmapTile, SubmapTile.submap_id == Submap.id)
-            .where(SubmapTile.i == i, SubmapTile.j == j)
-            .order_by(Submap.session_id, Submap.seq)
-        )
-        .scalars()
-        .all()
-    )
-    rows = [(s, _pose_init(s), (s.home_i, s.home_j) == (i, j)) for s in submaps]
-    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows))
+    submaps = _submaps_touching(db, [(i, j)])
+    rows = [(s, _pose_init(s), False) for s in submaps if s.pose_refined]
+    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows),
+                      pending=len(submaps) - len(rows))
 
 
-def load_meshes(db: Session, blobs: BlobStore, settings: Settings, inputs: TileInputs) -> None:
-    """Read the submap meshes and the neighbours' border pins into ``inputs``."""
+def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]]) -> RegionInputs:
+    """Every submap touching the region's tiles: the unaligned ones free (at their GPS poses), the
+    aligned ones held at their refined poses."""
+    submaps = _submaps_touching(db, keys)
+    rows = [(s, _pose_init(s), s.pose_refined is None) for s in submaps]
+    return RegionInputs([TileSpec(i, j, settings.tile_size) for i, j in keys], fusion_config(settings), rows)
+
+
+def load_submaps(
+    blobs: BlobStore, settings: Settings, rows: list[tuple[Submap, Pose, bool]]
+) -> list[SubmapInput]:
+    """The fusion inputs of ``rows``: mesh blobs read and validated, poses and sigmas."""
     limits = MeshLimits(max_faces=settings.max_faces, max_coordinate_m=settings.max_coordinate_m)
-    inputs.submaps = [
+    return [
         SubmapInput(
             id=s.id,
             session_id=s.session_id,
@@ -142,8 +168,13 @@ def load_meshes(db: Session, blobs: BlobStore, settings: Settings, inputs: TileI
             free=free,
             pose_gps=Pose.from_json(s.pose_gps),
         )
-        for s, pose, free in inputs.rows
+        for s, pose, free in rows
     ]
+
+
+def load_meshes(db: Session, blobs: BlobStore, settings: Settings, inputs: TileInputs) -> None:
+    """Read the submap meshes and the neighbours' border pins into ``inputs``."""
+    inputs.submaps = load_submaps(blobs, settings, inputs.rows)
     inputs.border_pins = _border_pins(db, blobs, inputs.tile.i, inputs.tile.j)
 
 

@@ -32,15 +32,23 @@ class LeaseLost(Exception):
 
 @dataclass
 class Claim:
-    """A job this process holds the tile lease for."""
+    """A job this process holds the tile leases for: its tile (reconstruct) or its region's (align)."""
 
     job_id: str
-    i: int
-    j: int
+    kind: str
+    tiles: list[tuple[int, int]]
     owner: str
-    generation: int  # the tile's dirty_generation when the lease was taken
+    generation: int  # the (first) tile's dirty_generation when the lease was taken
     started_at: datetime
     lease_s: float
+
+    @property
+    def i(self) -> int:
+        return self.tiles[0][0]
+
+    @property
+    def j(self) -> int:
+        return self.tiles[0][1]
 
 
 def claim_job(db: Session, job_id: str, owner: str, settings: Settings) -> Claim | None:
@@ -53,21 +61,25 @@ def claim_job(db: Session, job_id: str, owner: str, settings: Settings) -> Claim
         log.info("fusion job %s is already %s; nothing to do", job_id, job.state)
         return None
     now = utcnow()
-    tile = db.get(Tile, (job.tile_i, job.tile_j))
-    if tile is None or tile.job_id != job_id:
+    keys = [(int(i), int(j)) for i, j in (job.tiles or [[job.tile_i, job.tile_j]])]
+    rows = [db.get(Tile, key) for key in keys]
+    if any(tile is None or tile.job_id != job_id for tile in rows):
         job.state, job.finished_at = JobState.failed.value, now
         job.error = "superseded: the tile was scheduled again by another job"
         db.commit()
         return None
-    if not tiles.take_lease(db, job.tile_i, job.tile_j, job_id=job_id, owner=owner, now=now, lease_s=settings.lease_s):
-        db.rollback()
-        log.info("tile (%d, %d) is leased by another worker; job %s waits", job.tile_i, job.tile_j, job_id)
-        return None
-    db.refresh(tile)
-    job.state, job.progress, job.generation = JobState.running.value, 0.0, tile.dirty_generation
+    for i, j in keys:
+        if not tiles.take_lease(db, i, j, job_id=job_id, owner=owner, now=now, lease_s=settings.lease_s):
+            db.rollback()
+            log.info("tile (%d, %d) is leased by another worker; job %s waits", i, j, job_id)
+            return None
+    first = rows[0]
+    assert first is not None
+    db.refresh(first)
+    job.state, job.progress, job.generation = JobState.running.value, 0.0, first.dirty_generation
     job.started_at = job.started_at or now
     job.attempts += 1
-    claim = Claim(job_id, job.tile_i, job.tile_j, owner, tile.dirty_generation, now, settings.lease_s)
+    claim = Claim(job_id, job.kind, keys, owner, first.dirty_generation, now, settings.lease_s)
     db.commit()
     return claim
 
@@ -101,13 +113,18 @@ class LeaseKeeper:
             try:
                 self.renew()
             except Exception as exc:  # a DB hiccup: try again next beat, the lease has slack
-                log.warning("lease renewal of tile (%d, %d) failed: %s", self.claim.i, self.claim.j, exc)
+                log.warning("lease renewal of job %s failed: %s", self.claim.job_id, exc)
 
     def renew(self, progress: float | None = None) -> None:
         """Extend the lease (and record ``progress`` in [0, 1]); sets ``lost`` if it is not ours."""
         c = self.claim
         with self._lock, self.factory() as db:
-            if not tiles.renew_lease(db, c.i, c.j, owner=c.owner, now=utcnow(), lease_s=c.lease_s, progress=progress):
+            now = utcnow()
+            renewed = [
+                tiles.renew_lease(db, i, j, owner=c.owner, now=now, lease_s=c.lease_s, progress=progress)
+                for i, j in c.tiles
+            ]
+            if not all(renewed):
                 self.lost.set()
             elif progress is not None:
                 db.execute(update(FusionJob).where(FusionJob.id == c.job_id).values(progress=progress))
@@ -115,7 +132,7 @@ class LeaseKeeper:
 
     def __call__(self, event: ProgressEvent) -> None:
         if self.lost.is_set():
-            raise LeaseLost(f"lease of tile ({self.claim.i}, {self.claim.j}) lost")
+            raise LeaseLost(f"lease of job {self.claim.job_id} on tile(s) {self.claim.tiles} lost")
         now = time.monotonic()
         if now - self._last_write < PROGRESS_INTERVAL_S:
             return
@@ -136,10 +153,11 @@ def release(factory: sessionmaker[Session], claim: Claim, *, error: str | None) 
     """
     now = utcnow()
     with factory() as db:
-        released = tiles.release_lease(
-            db, claim.i, claim.j, owner=claim.owner, started_at=claim.started_at, now=now, error=error
-        )
-        if not released:
+        released = [
+            tiles.release_lease(db, i, j, owner=claim.owner, started_at=claim.started_at, now=now, error=error)
+            for i, j in claim.tiles
+        ]
+        if not any(released):
             db.rollback()
             return
         values: dict[str, Any] = {"progress": 0.0}

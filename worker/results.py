@@ -14,22 +14,19 @@ from enum import StrEnum
 from typing import Any
 
 import numpy as np
-from sqlalchemy import select, update
+from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.meshio import write_fused_ply, write_glb
-from fusion.types import FusionResult
+from fusion.types import FusionResult, Pose
 from service.store import tiles
 from service.store.blobs import BlobStore
-from service.store.models import FusionJob, JobState, Submap, SubmapTile, TileVersion, utcnow
-from worker.inputs import TileInputs, pack_border, pose_change
+from service.store.models import FusionJob, JobKind, JobState, JobTrigger, Submap, TileVersion, new_id, utcnow
+from worker.inputs import RegionInputs, TileInputs, pack_border
 from worker.lease import Claim
 
 log = logging.getLogger(__name__)
 
-# A free submap that moved more than this marks the other tiles it touches dirty (multi-tile consistency).
-MOVE_THRESHOLD_M = 0.05
-MOVE_THRESHOLD_DEG = 0.1
 
 
 class Outcome(StrEnum):
@@ -71,37 +68,11 @@ def jsonable(value: Any) -> Any:
     return value
 
 
-def _store_refined_poses(db: Session, inputs: TileInputs, result: FusionResult, now: datetime) -> list[str]:
-    """Write the refined poses of the tile's home (free) submaps; returns the ids that moved."""
-    free = {s.id for s, _, is_free in inputs.rows if is_free}
-    moved = []
-    for submap_id, pose in result.poses.items():
-        if submap_id not in free:
-            continue
-        db.execute(
-            update(Submap).where(Submap.id == submap_id).values(pose_refined=pose.to_json(), refined_at=now)
-        )
-        trans_m, rot_deg = pose_change(inputs.pose_init[submap_id], pose)
-        if trans_m > MOVE_THRESHOLD_M or rot_deg > MOVE_THRESHOLD_DEG:
-            moved.append(submap_id)
-    return moved
-
-
-def _finish(db: Session, claim: Claim, now: datetime, *, new_version: bool) -> tuple[int, str] | None:
+def _finish(
+    db: Session, claim: Claim, now: datetime, *, new_version: bool, pending: bool
+) -> tuple[int, str] | None:
     return tiles.finish(db, claim.i, claim.j, owner=claim.owner, generation=claim.generation,
-                        started_at=claim.started_at, now=now, new_version=new_version)
-
-
-def _mark_tiles_dirty(
-    db: Session, claim: Claim, submap_ids: list[str], now: datetime
-) -> list[tuple[int, int]]:
-    """The other tiles touched by ``submap_ids`` need a re-fusion: their held poses changed."""
-    touched = db.execute(
-        select(SubmapTile.i, SubmapTile.j).where(SubmapTile.submap_id.in_(submap_ids)).distinct()
-    ).all()
-    others = sorted((int(i), int(j)) for i, j in touched if (i, j) != (claim.i, claim.j))
-    tiles.mark_dirty(db, others, now, upload=False)
-    return others
+                        started_at=claim.started_at, now=now, new_version=new_version, pending=pending)
 
 
 def commit_success(
@@ -112,16 +83,11 @@ def commit_success(
     stored: StoredBlobs,
     duration_s: float,
 ) -> Outcome:
-    """ONE transaction: tile version, refined poses, tile state, job, neighbours. ``succeeded``/``lost``."""
+    """ONE transaction: tile version, tile state, job. ``succeeded``/``lost``. The poses were written
+    by the alignment; a reconstruction never moves one, so it never makes another tile dirty."""
     now = utcnow()
     with factory() as db:
-        previous = db.execute(
-            select(TileVersion.metrics)
-            .where(TileVersion.tile_i == claim.i, TileVersion.tile_j == claim.j)
-            .order_by(TileVersion.version.desc())
-            .limit(1)
-        ).first()
-        finished = _finish(db, claim, now, new_version=True)
+        finished = _finish(db, claim, now, new_version=True, pending=inputs.pending > 0)
         if finished is None:
             db.rollback()
             log.warning("job %s: lease lost before commit; results discarded", claim.job_id)
@@ -130,7 +96,7 @@ def commit_success(
         metrics = jsonable(dict(result.metrics))
         metrics.update(
             submaps=len(inputs.rows),
-            free_submaps=sum(1 for _, _, free in inputs.rows if free),
+            pending_submaps=inputs.pending,
             faces=int(len(result.mesh.faces)),
             vertices=int(len(result.mesh.vertices)),
             wall_s=round(duration_s, 3),
@@ -150,26 +116,15 @@ def commit_success(
                 created_at=now,
             )
         )
-        moved = _store_refined_poses(db, inputs, result, now)
-        # Pose changes propagate when this fusion used new submaps (damping: a re-fusion caused only by
-        # a neighbour's pose change does not bounce back, so the map settles tile by tile).
-        had = (previous[0] or {}).get("submaps", 0) if previous else 0
-        dirtied = _mark_tiles_dirty(db, claim, moved, now) if moved and len(inputs.rows) > had else []
-        _job_succeeded(db, claim, now, inputs.fingerprint,
-                       {**metrics, "version": version, "moved_submaps": len(moved), "tiles_dirtied": dirtied})
+        _job_succeeded(db, claim, now, inputs.fingerprint, {**metrics, "version": version})
         db.commit()
-    log.info(
-        "tile (%d, %d) fused: version %d, state %s, %d submaps moved",
-        claim.i,
-        claim.j,
-        version,
-        state,
-        len(moved),
-    )
+    log.info("tile (%d, %d) fused: version %d, state %s", claim.i, claim.j, version, state)
     return Outcome.succeeded
 
 
-def _job_succeeded(db: Session, claim: Claim, now: datetime, fingerprint: str, metrics: dict[str, Any]) -> None:
+def _job_succeeded(
+    db: Session, claim: Claim, now: datetime, fingerprint: str | None, metrics: dict[str, Any]
+) -> None:
     """Mark the claimed job succeeded with ``metrics`` (inside the caller's transaction)."""
     db.execute(
         update(FusionJob)
@@ -189,7 +144,7 @@ def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInpu
     """The latest version already used exactly these inputs: finish without a new version."""
     now = utcnow()
     with factory() as db:
-        finished = _finish(db, claim, now, new_version=False)
+        finished = _finish(db, claim, now, new_version=False, pending=inputs.pending > 0)
         if finished is None:
             db.rollback()
             return Outcome.lost
@@ -199,3 +154,34 @@ def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInpu
         db.commit()
     log.info("tile (%d, %d): inputs unchanged since version %d; no new version", claim.i, claim.j, version)
     return Outcome.reused
+
+
+def commit_alignment(
+    factory: sessionmaker[Session], claim: Claim, inputs: RegionInputs, poses: dict[str, Pose], metrics: dict[str, Any]
+) -> tuple[Outcome, list[str]]:
+    """ONE transaction: the refined pose of every aligned submap (written once: only where none was),
+    a reconstruct job for each of the region's tiles (each tile handed from this lease to its job,
+    ``queued``), the align job ``succeeded``. Returns the outcome and the new jobs to enqueue."""
+    now = utcnow()
+    with factory() as db:
+        for submap_id, pose in sorted(poses.items()):
+            db.execute(
+                update(Submap)
+                .where(Submap.id == submap_id, Submap.pose_refined.is_(None))
+                .values(pose_refined=pose.to_json(), refined_at=now)
+            )
+        jobs = []
+        for i, j in claim.tiles:
+            job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
+                            trigger=JobTrigger.auto.value, created_at=now, enqueued_at=now)
+            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now):
+                db.rollback()
+                log.warning("job %s: lease lost before commit; alignment discarded", claim.job_id)
+                return Outcome.lost, []
+            db.add(job)
+            jobs.append(job.id)
+        _job_succeeded(db, claim, now, None, jsonable({**metrics, "aligned_submaps": len(poses),
+                                                       "reconstruct_jobs": jobs}))
+        db.commit()
+    log.info("region %s aligned: %d submap poses, %d tiles to reconstruct", claim.tiles, len(poses), len(jobs))
+    return Outcome.succeeded, jobs

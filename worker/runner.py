@@ -17,19 +17,21 @@ import os
 import socket
 import time
 from functools import lru_cache
+from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.errors import FusionLibraryError
-from fusion.types import FusionResult
+from fusion.types import FusionResult, Pose
+from service.broker import enqueue
 from service.settings import Settings, get_settings
 from service.store.blobs import BlobStore, blob_store_from_url
 from service.store.db import engine_from_settings, make_sessionmaker
-from service.store.models import TileVersion
+from service.store.models import JobKind, TileVersion
 from worker import results
-from worker.inputs import TileInputs, load_meshes, plan_tile
-from worker.lease import LeaseKeeper, LeaseLost, claim_job, release
+from worker.inputs import RegionInputs, TileInputs, load_meshes, load_submaps, plan_alignment, plan_tile
+from worker.lease import Claim, LeaseKeeper, LeaseLost, claim_job, release
 from worker.results import Outcome
 
 log = logging.getLogger(__name__)
@@ -85,17 +87,79 @@ def _observe(seconds: float, outcome: str) -> None:
     observe_fusion_duration(seconds, outcome)
 
 
-def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
-    from fusion.reconstruct import fuse_tile  # torch: imported in the worker process only
-
+def _torch_threads() -> None:
     threads = get_settings().torch_threads  # FLEETMAP_TORCH_THREADS: leave cores to a co-located API
     if threads:
         import torch
 
         torch.set_num_threads(threads)
+
+
+def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
+    """Reconstruct one tile with every pose held (torch: imported in the worker process only)."""
+    from fusion.reconstruct import fuse_tile
+
+    _torch_threads()
     return fuse_tile(
         inputs.submaps, inputs.tile, inputs.config, progress=keeper, border_pins=inputs.border_pins or None
     )
+
+
+def _align(inputs: RegionInputs, keeper: LeaseKeeper) -> tuple[dict[str, Pose], dict[str, Any]]:
+    """Align the region's free submaps against the rest; returns refined poses (map frame) and metrics."""
+    from fusion.align import align_region
+
+    _torch_threads()
+    result = align_region(inputs.submaps, inputs.tiles, inputs.config, progress=keeper)
+    return result.poses, result.metrics
+
+
+def _run_alignment(
+    factory: sessionmaker[Session], blobs: BlobStore, settings: Settings, claim: Claim, keeper: LeaseKeeper
+) -> Outcome:
+    with factory() as db:
+        inputs = plan_alignment(db, settings, claim.tiles)
+    poses: dict[str, Pose] = {}
+    metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free)}
+    if inputs.free:  # none: a re-run after the poses were committed; only the hand-over is left
+        inputs.submaps = load_submaps(blobs, settings, inputs.rows)
+        log.info("aligning region %s: %d submaps, %d free, job %s", claim.tiles, len(inputs.rows),
+                 len(inputs.free), claim.job_id)
+        poses, align_metrics = _align(inputs, keeper)
+        metrics.update(align_metrics)
+    if keeper.lost.is_set():
+        raise LeaseLost(f"lease of job {claim.job_id} lost")
+    outcome, jobs = results.commit_alignment(factory, claim, inputs, poses, metrics)
+    for job_id in jobs:
+        enqueue(job_id, settings, JobKind.reconstruct.value)
+    return outcome
+
+
+def _run_reconstruction(
+    factory: sessionmaker[Session], blobs: BlobStore, settings: Settings, claim: Claim, keeper: LeaseKeeper
+) -> Outcome:
+    started = time.monotonic()
+    with factory() as db:
+        inputs = plan_tile(db, settings, claim.i, claim.j)
+        latest = db.execute(
+            select(TileVersion.input_fingerprint)
+            .where(TileVersion.tile_i == claim.i, TileVersion.tile_j == claim.j)
+            .order_by(TileVersion.version.desc())
+            .limit(1)
+        ).scalar_one_or_none()
+        unchanged = latest == inputs.fingerprint
+        if not unchanged:
+            if not inputs.rows:
+                raise ValueError("the tile holds no aligned submap")
+            load_meshes(db, blobs, settings, inputs)
+    if unchanged:
+        return results.commit_reused(factory, claim, inputs)
+    log.info("fusing tile (%d, %d): %d submaps, job %s", claim.i, claim.j, len(inputs.rows), claim.job_id)
+    result = _fuse(inputs, keeper)
+    if keeper.lost.is_set():
+        raise LeaseLost(f"lease of tile ({claim.i}, {claim.j}) lost")
+    blob_ids = results.store_blobs(blobs, result)
+    return results.commit_success(factory, claim, inputs, result, blob_ids, time.monotonic() - started)
 
 
 def run_fusion_job(
@@ -119,31 +183,10 @@ def run_fusion_job(
     if claim is None:
         return Outcome.skipped
     started = time.monotonic()
+    run = _run_alignment if claim.kind == JobKind.align.value else _run_reconstruction
     try:
         with LeaseKeeper(factory, claim) as keeper:
-            with factory() as db:
-                inputs = plan_tile(db, settings, claim.i, claim.j)
-                latest = db.execute(
-                    select(TileVersion.input_fingerprint)
-                    .where(TileVersion.tile_i == claim.i, TileVersion.tile_j == claim.j)
-                    .order_by(TileVersion.version.desc())
-                    .limit(1)
-                ).scalar_one_or_none()
-                unchanged = latest == inputs.fingerprint
-                if not unchanged:
-                    if not inputs.rows:
-                        raise ValueError("the tile holds no submap")
-                    load_meshes(db, blobs, settings, inputs)
-            if unchanged:
-                return results.commit_reused(factory, claim, inputs)
-            log.info("fusing tile (%d, %d): %d submaps, job %s", claim.i, claim.j, len(inputs.rows), job_id)
-            result = _fuse(inputs, keeper)
-            if keeper.lost.is_set():
-                raise LeaseLost(f"lease of tile ({claim.i}, {claim.j}) lost")
-            blob_ids = results.store_blobs(blobs, result)
-            outcome = results.commit_success(
-                factory, claim, inputs, result, blob_ids, time.monotonic() - started
-            )
+            outcome = run(factory, blobs, settings, claim, keeper)
     except LeaseLost as exc:
         log.warning("job %s: %s; another worker re-runs it", job_id, exc)
         return Outcome.lost
@@ -160,9 +203,7 @@ def run_fusion_job(
                 log.warning("job %s: could not release the lease: %s", job_id, release_exc)
             raise TransientJobError(str(exc)) from exc
         message = _error_message(exc)
-        log.error(
-            "fusion job %s of tile (%d, %d) failed: %s", job_id, claim.i, claim.j, message, exc_info=exc
-        )
+        log.error("%s job %s of tile(s) %s failed: %s", claim.kind, job_id, claim.tiles, message, exc_info=exc)
         release(factory, claim, error=message)
         _observe(time.monotonic() - started, "failed")
         return Outcome.failed

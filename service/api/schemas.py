@@ -209,7 +209,12 @@ class FuseAccepted(BaseModel):
 
 class JobPublic(BaseModel):
     id: str
-    tile: TileIndex
+    kind: Literal["align", "reconstruct"] = Field(
+        description="`align`: refine the poses of a region's new submaps over `tiles` (writes "
+        "`pose_refined`); `reconstruct`: fit one tile's field with the poses held and extract its mesh"
+    )
+    tile: TileIndex = Field(description="The tile (reconstruct), or the region's first tile (align)")
+    tiles: list[TileIndex] = Field(description="Every tile the job covers: `[tile]`, or the region (align)")
     state: JobStateName
     trigger: Literal["auto", "operator"]
     progress: float

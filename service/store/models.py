@@ -95,6 +95,11 @@ class JobState(enum.StrEnum):
     failed = "failed"
 
 
+class JobKind(enum.StrEnum):
+    align = "align"  # the poses of a region's unaligned submaps, over the region's tiles
+    reconstruct = "reconstruct"  # one tile's field and mesh, poses held
+
+
 class JobTrigger(enum.StrEnum):
     auto = "auto"
     operator = "operator"
@@ -193,7 +198,8 @@ class Tile(Base):
 
 
 class FusionJob(Base):
-    """One fusion attempt of one tile, covering the tile's ``dirty_generation`` at ``generation``."""
+    """One fusion job. ``reconstruct``: tile (``tile_i``, ``tile_j``), covering its ``dirty_generation`` at
+    ``generation``. ``align``: the region ``tiles`` (``[[i, j], ...]``; ``tile_i``/``tile_j`` its first)."""
 
     __tablename__ = "fusion_jobs"
     __table_args__ = (
@@ -205,6 +211,8 @@ class FusionJob(Base):
     tile_i: Mapped[int] = mapped_column(Integer)
     tile_j: Mapped[int] = mapped_column(Integer)
     state: Mapped[str] = mapped_column(String(16), default=JobState.queued.value)
+    kind: Mapped[str] = mapped_column(String(16), default=JobKind.reconstruct.value, server_default="reconstruct")
+    tiles: Mapped[list[Any] | None] = mapped_column(default=None)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     trigger: Mapped[str] = mapped_column(String(16), default=JobTrigger.auto.value)
     generation: Mapped[int] = mapped_column(Integer, default=0)

@@ -3,7 +3,9 @@ transition here; the scheduler, the ingest path and the job runner call them.
 
 States (``../shared/API.md``): ``dirty`` → ``queued`` → ``fusing`` → ``fused`` (or back to ``dirty``
 when uploads arrived meanwhile, ``queued`` when the worker stopped, ``failed`` on an error);
-``failed`` and ``fused`` tiles become ``dirty`` again with new submaps.
+``failed`` and ``fused`` tiles become ``dirty`` again with new submaps. A tile holding unaligned
+submaps goes through its region's align job first (``queued`` → ``fusing`` while it runs), which hands
+it to the tile's reconstruct job (→ ``queued``) when the poses are written.
 
 Each transition is ONE conditional ``UPDATE … WHERE <expected state>``: its rowcount says whether
 *this* process made it, so several API processes and workers may act at once on PostgreSQL or SQLite
@@ -19,12 +21,12 @@ from __future__ import annotations
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, case, exists, func, literal, null, or_, tuple_, update
+from sqlalchemy import and_, case, false, func, literal, null, or_, tuple_, update
 from sqlalchemy.orm import Session
 from sqlalchemy.sql.elements import ColumnElement
 
 from service.store.db import insert_ignore
-from service.store.models import Submap, Tile, TileState, UTCDateTime
+from service.store.models import Tile, TileState, UTCDateTime
 
 BUSY_STATES = (TileState.queued.value, TileState.fusing.value)
 
@@ -45,12 +47,6 @@ def _update(i: int, j: int, *where: ColumnElement[bool]) -> Any:
 def lease_expired(now: datetime) -> ColumnElement[bool]:
     """``fusing`` tiles whose worker stopped renewing its lease."""
     return and_(Tile.state == TileState.fusing.value, or_(Tile.lease_until.is_(None), Tile.lease_until < now))
-
-
-def owns_submaps(i_column: Any, j_column: Any) -> ColumnElement[bool]:
-    """Whether the tile is the home tile of some submap. Such tiles are fused first: they refine the
-    poses that their neighbours hold fixed, so the neighbours then fuse once, with refined poses."""
-    return exists().where(Submap.home_i == i_column, Submap.home_j == j_column)
 
 
 # ------------------------------------------------------------------------------------- transitions
@@ -149,14 +145,25 @@ def release_lease(
     return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 
+def hand_over(db: Session, i: int, j: int, *, owner: str, job_id: str, now: datetime) -> bool:
+    """An alignment finished: the tile goes from ``owner``'s lease to its reconstruct job ``job_id``
+    (→ ``queued``); False if the lease is no longer ours."""
+    return _changed(db.execute(
+        _update(i, j, Tile.lease_owner == owner).values(
+            state=TileState.queued.value, job_id=job_id, lease_owner=None, lease_until=None, progress=0.0,
+            updated_at=now,
+        )
+    ))
+
+
 def finish(
     db: Session, i: int, j: int, *, owner: str, generation: int, started_at: datetime, now: datetime,
-    new_version: bool,
+    new_version: bool, pending: bool = False,
 ) -> tuple[int, str] | None:
     """Release ``owner``'s lease after a successful fusion from ``generation``: → ``fused``, or
-    ``dirty`` when uploads arrived since. Returns ``(version, state)``; None when the lease is no
-    longer ours (nothing written)."""
-    unchanged = Tile.dirty_generation == generation
+    ``dirty`` when uploads arrived since or ``pending`` submaps (still unaligned) were left out.
+    Returns ``(version, state)``; None when the lease is no longer ours (nothing written)."""
+    unchanged = false() if pending else Tile.dirty_generation == generation
     values: dict[str, Any] = {
         "state": case((unchanged, TileState.fused.value), else_=TileState.dirty.value),
         "dirty_since": case((unchanged, null()), else_=func.coalesce(Tile.dirty_since, _at(started_at))),

@@ -1,4 +1,5 @@
-"""Scheduler behaviour: debounce / max wait, one fusion per burst, re-dirtying, lease, sweeper.
+"""Scheduler behaviour: debounce / max wait, one alignment and one reconstruction per burst,
+re-dirtying, lease, sweeper.
 
 Uploads go through the real app (httpx TestClient, SQLite); the scheduler is ticked with an injected
 ``now``; jobs run in-process with a fake fusion (tests/worker_support.py) so no torch training runs.
@@ -17,7 +18,7 @@ from sqlalchemy import select, update
 from fusion.errors import FusionError
 from service import schedule as scheduler
 from service.store.models import FusionJob, JobState, Tile, TileVersion, utcnow
-from tests.worker_support import FakeFusion, api, make_settings, session_factory, upload
+from tests.worker_support import FakeAlign, FakeFusion, api, make_settings, session_factory, upload
 from worker import runner
 from worker.lease import claim_job
 from worker.runner import run_fusion_job
@@ -28,6 +29,13 @@ def fake(monkeypatch: pytest.MonkeyPatch) -> FakeFusion:
     fusion = FakeFusion(shift=0.0)
     monkeypatch.setattr(runner, "_fuse", fusion)
     return fusion
+
+
+@pytest.fixture
+def align(monkeypatch: pytest.MonkeyPatch) -> FakeAlign:
+    aligner = FakeAlign(shift=0.0)
+    monkeypatch.setattr(runner, "_align", aligner)
+    return aligner
 
 
 @pytest.fixture
@@ -66,13 +74,31 @@ def current_job(client: Any, i: int = 0, j: int = 0) -> str:
     return job_id
 
 
+def kind(client: Any, job_id: str) -> str:
+    return str(client.get(f"/v1/jobs/{job_id}").json()["kind"])
+
+
+def align_then_reconstruct(client: Any, *keys: tuple[int, int]) -> None:
+    """Run the region's align job (the current job of the first tile), then each tile's reconstruct job."""
+    job_id = current_job(client, *keys[0])
+    assert kind(client, job_id) == "align"
+    assert run(client, job_id) == "succeeded"
+    for key in keys:
+        assert client.get(f"/v1/tiles/{key[0]}/{key[1]}").json()["state"] == "queued"
+        job_id = current_job(client, *key)
+        assert kind(client, job_id) == "reconstruct"
+        assert run(client, job_id) == "succeeded"
+
+
 def jobs_of(client: Any, i: int = 0, j: int = 0) -> list[FusionJob]:
     with client.db() as db:
         query = select(FusionJob).where(FusionJob.tile_i == i, FusionJob.tile_j == j)
         return list(db.execute(query.order_by(FusionJob.created_at)).scalars())
 
 
-def test_debounce_then_one_fusion_per_burst(env: Any, fake: FakeFusion) -> None:
+def test_debounce_then_one_alignment_and_one_reconstruction_per_burst(
+    env: Any, fake: FakeFusion, align: FakeAlign
+) -> None:
     for seq in range(5):
         upload(env, "veh-1/a", seq, [10.0 + seq, 10.0, 0.0])
     assert env.get("/v1/tiles/0/0").json()["state"] == "dirty"
@@ -81,8 +107,11 @@ def test_debounce_then_one_fusion_per_burst(env: Any, fake: FakeFusion) -> None:
     assert tick(env, 32).scheduled == []  # already queued: no second job
     (job,) = jobs_of(env)
     assert env.get("/v1/tiles/0/0").json()["state"] == "queued"
-    assert run(env, job.id) == "succeeded"
-    assert len(fake.calls) == 1 and len(fake.calls[0][1]) == 5
+    align.shift = 0.2
+    align_then_reconstruct(env, (0, 0))
+    assert len(align.calls) == 1 and [s.free for s in align.calls[0][1]] == [True] * 5
+    assert len(fake.calls) == 1 and [s.free for s in fake.calls[0][1]] == [False] * 5  # poses held
+    assert [s.pose_init.t[0] for s in fake.calls[0][1]] == pytest.approx([10.2, 11.2, 12.2, 13.2, 14.2])
     body = env.get("/v1/tiles/0/0").json()
     assert (body["state"], body["version"], body["progress"]) == ("fused", 1, 1.0)
     assert tick(env, 1000).scheduled == []
@@ -106,45 +135,61 @@ def test_max_wait_schedules_a_tile_that_never_goes_quiet(env: Any) -> None:
         assert scheduler.tick(db, now, env.settings).scheduled == [(0, 0)]
 
 
-def test_uploads_during_fusion_make_the_tile_dirty_again(env: Any, fake: FakeFusion) -> None:
+def test_uploads_during_fusion_are_aligned_then_fused_again(env: Any, fake: FakeFusion, align: FakeAlign) -> None:
     upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
     tick(env, 31)
+    assert run(env, current_job(env)) == "succeeded"  # the alignment
     fake.during = lambda: upload(env, "veh-1/a", 1, [12.0, 10.0, 0.0])
     assert run(env, current_job(env)) == "succeeded"
     body = env.get("/v1/tiles/0/0").json()
     assert (body["state"], body["version"], body["submaps"]) == ("dirty", 1, 2)
     fake.during = None
     assert tick(env, 31).scheduled == [(0, 0)]
-    assert run(env, current_job(env)) == "succeeded"
+    align_then_reconstruct(env, (0, 0))
+    assert [s.free for s in align.calls[-1][1]] == [False, True]  # the map is held, the new submap aligned
     body = env.get("/v1/tiles/0/0").json()
     assert (body["state"], body["version"]) == ("fused", 2)
     assert len(fake.calls[-1][1]) == 2
 
 
-def test_one_fusion_per_tile_and_one_active_job(env: Any, fake: FakeFusion) -> None:
+def test_a_submap_uploaded_during_reconstruction_keeps_the_tile_dirty(
+    env: Any, fake: FakeFusion, align: FakeAlign
+) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    tick(env, 31)
+    assert run(env, current_job(env)) == "succeeded"
+    upload(env, "veh-1/a", 1, [12.0, 10.0, 0.0])  # after the alignment, before the reconstruction started
+    assert run(env, current_job(env)) == "succeeded"
+    assert [s.seq for s in fake.calls[-1][1]] == [0]  # the unaligned submap is left out ...
+    assert env.get("/v1/tiles/0/0").json()["state"] == "dirty"  # ... and still pending
+
+
+def test_one_fusion_per_tile_and_one_active_job(env: Any, fake: FakeFusion, align: FakeAlign) -> None:
     upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
     first = env.post("/v1/tiles/0/0/fuse")
     second = env.post("/v1/tiles/0/0/fuse")
     assert first.status_code == second.status_code == 202
     assert first.json()["job_id"] == second.json()["job_id"]
     job_id = first.json()["job_id"]
+    assert kind(env, job_id) == "align"  # an unaligned submap: its region is aligned first
     with env.db() as db:
         assert claim_job(db, job_id, "other-worker", env.settings) is not None
     assert env.get("/v1/tiles/0/0").json()["state"] == "fusing"
     assert run(env, job_id) == "skipped"  # the lease is held elsewhere
-    assert fake.calls == []
+    assert align.calls == [] and fake.calls == []
     with env.db() as db:
         assert claim_job(db, job_id, "third-worker", env.settings) is None
     assert env.post("/v1/tiles/0/0/fuse").json()["job_id"] == job_id  # still the running job
 
 
-def test_failed_fusion_keeps_serving_the_previous_version(env: Any, fake: FakeFusion) -> None:
+def test_failed_fusion_keeps_serving_the_previous_version(env: Any, fake: FakeFusion, align: FakeAlign) -> None:
     upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
     tick(env, 31)
-    assert run(env, current_job(env)) == "succeeded"
+    align_then_reconstruct(env, (0, 0))
     etag = env.get("/v1/tiles/0/0/mesh").headers["etag"]
     upload(env, "veh-1/a", 1, [12.0, 10.0, 0.0])
     tick(env, 31)
+    assert run(env, current_job(env)) == "succeeded"
     fake.error = FusionError("the optimisation diverged")
     failed_id = current_job(env)
     assert run(env, failed_id) == "failed"
@@ -159,55 +204,57 @@ def test_failed_fusion_keeps_serving_the_previous_version(env: Any, fake: FakeFu
     fake.error = None
     upload(env, "veh-1/a", 2, [14.0, 10.0, 0.0])
     assert tick(env, 31).scheduled == [(0, 0)]
-    assert run(env, current_job(env)) == "succeeded"
+    align_then_reconstruct(env, (0, 0))
     body = env.get("/v1/tiles/0/0").json()
     assert (body["state"], body["version"], body["last_error"]) == ("fused", 2, None)
 
 
-def test_refined_poses_are_served_and_moves_dirty_other_tiles(env: Any, fake: FakeFusion) -> None:
-    # x ∈ [48, 68] with the GPS margin: touches tiles (0, 0) and (1, 0); home tile (0, 0).
+def test_one_alignment_writes_each_pose_once_for_all_its_tiles(
+    env: Any, fake: FakeFusion, align: FakeAlign
+) -> None:
+    # x ∈ [48, 68] with the GPS margin: touches tiles (0, 0) and (1, 0), linked into one region.
     created = upload(env, "veh-1/a", 0, [50.0, 10.0, 0.0])
     assert sorted(map(tuple, created["tiles"])) == [(0, 0), (1, 0)]
     upload(env, "veh-1/a", 1, [10.0, 10.0, 0.0])
+    upload(env, "veh-9/far", 0, [1000.0, 10.0, 0.0])  # another region: aligned on its own
     report = tick(env, 31)
-    assert sorted(report.scheduled) == [(0, 0), (1, 0)]
-    assert (
-        run(env, current_job(env, 1, 0)) == "succeeded"
-    )  # (1, 0) holds the submap fixed: no refined pose yet
-    assert env.get(f"/v1/submaps/{created['id']}").json()["pose_refined"] is None
-    fake.shift = 0.3
-    assert run(env, current_job(env)) == "succeeded"
+    assert sorted(report.scheduled) == [(0, 0), (1, 0), (15, 0)]
+    align_job = current_job(env)
+    assert current_job(env, 1, 0) == align_job
+    assert env.get(f"/v1/jobs/{align_job}").json()["tiles"] == [[0, 0], [1, 0]]
+    align.shift = 0.3
+    align_then_reconstruct(env, (0, 0), (1, 0))
     refined = env.get(f"/v1/submaps/{created['id']}").json()["pose_refined"]
     assert refined["t"] == pytest.approx([50.3, 10.0, 0.0])
     poses = env.get("/v1/sessions/veh-1%2Fa/poses").json()
     assert [p["seq"] for p in poses] == [0, 1]
     assert poses[0]["pose_refined"]["t"] == pytest.approx([50.3, 10.0, 0.0])
-    # The submap moved 0.3 m: tile (1, 0), which holds it fixed, must be fused again.
-    assert env.get("/v1/tiles/1/0").json()["state"] == "dirty"
-    assert tick(env, 31).scheduled == [(1, 0)]
-    fake.shift = 0.0
-    assert run(env, current_job(env, 1, 0)) == "succeeded"
-    held = fake.calls[-1][1]
-    assert [s.pose_init.t[0] for s in held] == pytest.approx([50.3])  # held at its refined pose
+    held = fake.calls[-1][1]  # tile (1, 0) holds the submap at its refined pose
+    assert [s.pose_init.t[0] for s in held] == pytest.approx([50.3])
+    assert tick(env, 31).scheduled == []  # no cascade: the reconstructions moved nothing
+    assert [env.get(f"/v1/tiles/{i}/0").json()["version"] for i in (0, 1)] == [1, 1]
 
 
-def test_rerunning_a_job_is_idempotent(env: Any, fake: FakeFusion) -> None:
+def test_rerunning_a_job_is_idempotent(env: Any, fake: FakeFusion, align: FakeAlign) -> None:
     upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
     tick(env, 31)
+    align_id = current_job(env)
+    align_then_reconstruct(env, (0, 0))
     job_id = current_job(env)
-    assert run(env, job_id) == "succeeded"
-    assert run(env, job_id) == "skipped"  # a duplicate delivery of a finished job
+    assert run(env, align_id) == "skipped"  # a duplicate delivery of a finished alignment
+    assert run(env, job_id) == "skipped"  # ... and of a finished reconstruction
     again = env.post("/v1/tiles/0/0/fuse").json()["job_id"]
+    assert kind(env, again) == "reconstruct"  # everything aligned: the tile alone
     assert run(env, again) == "reused"  # same inputs and config as version 1
     with env.db() as db:
         versions = db.execute(select(TileVersion.version)).scalars().all()
     assert versions == [1]
     assert env.get(f"/v1/jobs/{again}").json()["metrics"]["reused_version"] == 1
     assert env.get("/v1/tiles/0/0").json()["state"] == "fused"
-    assert len(fake.calls) == 1
+    assert len(fake.calls) == 1 and len(align.calls) == 1
 
 
-def test_sweeper_reclaims_expired_leases_then_gives_up(env: Any, fake: FakeFusion) -> None:
+def test_sweeper_reclaims_expired_leases_then_gives_up(env: Any, fake: FakeFusion, align: FakeAlign) -> None:
     upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
     tick(env, 31)
     job_id = current_job(env)
@@ -223,13 +270,13 @@ def test_sweeper_reclaims_expired_leases_then_gives_up(env: Any, fake: FakeFusio
         assert state == ("queued" if attempt < scheduler.MAX_ATTEMPTS else "failed")
     job = env.get(f"/v1/jobs/{job_id}").json()
     assert job["state"] == "failed" and "worker lost" in job["error"]
-    assert fake.calls == []
+    assert fake.calls == [] and align.calls == []
 
 
 def test_sweeper_resends_jobs_whose_broker_message_was_lost(tmp_path: Any, monkeypatch: Any) -> None:
     settings = make_settings(tmp_path, broker_url="redis://127.0.0.1:1/0")
     sent: list[str] = []
-    monkeypatch.setattr(scheduler, "enqueue", lambda job_id, _settings=None: sent.append(job_id) or True)
+    monkeypatch.setattr(scheduler, "enqueue", lambda job_id, *_: sent.append(job_id) or True)
     with api(settings) as client:
         upload(client, "veh-1/a", 0, [10.0, 10.0, 0.0])
         factory = session_factory(client.app)

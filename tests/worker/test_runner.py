@@ -13,7 +13,7 @@ import pytest
 from fusion.errors import FusionError
 from service import schedule
 from service.store.models import FusionJob, JobState, Tile, TileState
-from tests.worker_support import FakeFusion, api, make_settings, session_factory, upload
+from tests.worker_support import FakeAlign, FakeFusion, api, make_settings, session_factory, upload
 from worker import runner
 from worker.results import Outcome
 from worker.runner import WorkerShutdown, run_fusion_job
@@ -40,16 +40,26 @@ def _job_and_tile(env: Any) -> tuple[FusionJob, Tile]:
         return db.get(FusionJob, env.job_id), db.get(Tile, (0, 0))
 
 
-def test_a_stopped_worker_hands_its_job_back_without_burning_an_attempt(
-    env: Any, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def _stop_three_times(env: Any, monkeypatch: pytest.MonkeyPatch, hook: str, fake: Any) -> None:
     for _ in range(3):  # more graceful stops than MAX_ATTEMPTS: the job must stay runnable
-        monkeypatch.setattr(runner, "_fuse", FakeFusion(error=WorkerShutdown()))  # type: ignore[arg-type]
+        monkeypatch.setattr(runner, hook, fake)
         with pytest.raises(WorkerShutdown):
             _run(env)
         job, tile = _job_and_tile(env)
         assert (job.state, job.attempts, tile.state) == (JobState.queued.value, 0, TileState.queued.value)
         assert tile.lease_owner is None
+
+
+def test_a_stopped_worker_hands_its_job_back_without_burning_an_attempt(
+    env: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _stop_three_times(env, monkeypatch, "_align", FakeAlign(error=WorkerShutdown()))
+    monkeypatch.setattr(runner, "_align", FakeAlign())
+    assert _run(env) is Outcome.succeeded  # the alignment; the tile goes to its reconstruct job
+    job, tile = _job_and_tile(env)
+    assert (job.state, job.attempts, job.kind, tile.state) == ("succeeded", 1, "align", TileState.queued.value)
+    env.job_id = tile.job_id
+    _stop_three_times(env, monkeypatch, "_fuse", FakeFusion(error=WorkerShutdown()))
     monkeypatch.setattr(runner, "_fuse", FakeFusion())
     assert _run(env) is Outcome.succeeded
     job, tile = _job_and_tile(env)
@@ -57,6 +67,9 @@ def test_a_stopped_worker_hands_its_job_back_without_burning_an_attempt(
 
 
 def test_a_failed_fusion_counts_its_attempt(env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(runner, "_align", FakeAlign())
+    assert _run(env) is Outcome.succeeded
+    env.job_id = _job_and_tile(env)[1].job_id
     monkeypatch.setattr(runner, "_fuse", FakeFusion(error=FusionError("nothing to fuse", code="empty_tile")))
     assert _run(env) is Outcome.failed
     job, tile = _job_and_tile(env)

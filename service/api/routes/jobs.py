@@ -1,4 +1,4 @@
-"""``/v1/jobs/{id}``: one fusion job."""
+"""``/v1/jobs/{id}``: one fusion job (``align`` a region's poses, or ``reconstruct`` a tile)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,9 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 def job_public(job: FusionJob) -> JobPublic:
     return JobPublic(
         id=job.id,
+        kind=job.kind,  # type: ignore[arg-type]
         tile=[job.tile_i, job.tile_j],
+        tiles=job.tiles or [[job.tile_i, job.tile_j]],
         state=job.state,  # type: ignore[arg-type]
         trigger=job.trigger,  # type: ignore[arg-type]
         progress=job.progress,

@@ -181,8 +181,12 @@ def get_tile(i: int, j: int, request: Request, db: SessionDep, _principal: Reade
     response_model=FuseAccepted,
     responses=problem_responses(401, 403, 404, 422, 503),
 )
-def fuse_tile(i: int, j: int, db: SessionDep, settings: SettingsDep, _principal: Operator) -> FuseAccepted:
-    """Queue a (re-)fusion of the tile; an already queued or running job is returned instead."""
+def request_tile_fusion(
+    i: int, j: int, db: SessionDep, settings: SettingsDep, _principal: Operator
+) -> FuseAccepted:
+    """Queue a (re-)fusion of the tile; an already queued or running job is returned instead. When
+    the tile holds submaps not aligned yet, the job is its region's alignment (`GET /v1/jobs/{id}`:
+    `kind` `align`), which then reconstructs every tile of the region."""
     _tile_row(db, i, j)
     try:
         job = request_fusion(db, i, j, trigger=JobTrigger.operator.value, settings=settings)
