@@ -132,8 +132,8 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
             inputs = [replace(by_id[sid].input, pose_init=refined.get(sid, by_id[sid].pose_gps),
                               pose_gps=by_id[sid].pose_gps, free=True) for sid in region.submaps]
 
-            def align_progress(ev: ProgressEvent, r: int = r) -> None:
-                stage = f"region {r + 1}/{len(found)} ({len(region.tiles)} tiles) {ev.stage}"
+            def align_progress(ev: ProgressEvent, r: int = r, n_tiles: int = len(region.tiles)) -> None:
+                stage = f"region {r + 1}/{len(found)} ({n_tiles} tiles) {ev.stage}"
                 progress(ProgressEvent(ev.iteration, ev.total, ev.losses, stage))  # type: ignore[misc]
 
             try:
