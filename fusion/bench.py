@@ -253,11 +253,11 @@ def format_table(report: dict[str, Any]) -> str:
 def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
               json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
               out: Callable[[str], None] = print, tile_size: float | None = None,
-              vertex_noise_m: float | None = None, tiles: int = 1) -> dict[str, Any]:
+              vertex_noise_m: float | None = None, tiles: int = 3) -> dict[str, Any]:
     """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
     ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
-    (and optionally write to ``json_path``) every figure. ``tiles`` > 1: the multi-tile bench over a
-    ``tiles``×``tiles`` core (``fusion.bench_region``)."""
+    (and optionally write to ``json_path``) every figure, with ``tiles`` = 1. ``tiles`` > 1 (default 3):
+    the multi-tile bench over a ``tiles``×``tiles`` core (``fusion.bench_region``)."""
     if tiles > 1:
         from fusion.bench_region import run_region_bench
 
