@@ -1,5 +1,6 @@
 """Benchmark on a synthetic fleet: simulate, fuse one 64 m tile the way the offline path does,
-evaluate against the ground truth, print a table (and optionally write every figure as JSON).
+evaluate against the ground truth, print a table (and optionally write every figure as JSON). This is
+the one-tile bench (``--tiles 1``); the default multi-tile bench is ``fusion.bench_region``.
 
 Rows are functions ``row_*(ctx) -> dict`` registered in ``ROWS``; to add an ablation, write one more
 function (e.g. fuse with a changed ``FusionConfig``) and register it. ``evaluate_mesh`` turns a fused
