@@ -81,6 +81,10 @@ class FusionConfig:
     # progressive level of detail
     lod_start_levels: int = 3  # coarse start (~2 m cells) widens the pose basin: 6 let sessions ~1 m apart fit as two surfaces
     lod_full_fraction: float = 0.6  # all levels active after this fraction of the iterations
+    # region alignment (fusion.align): one pose per submap across the region's tiles, coarse-to-medium LOD
+    align_iterations_per_tile: int = 150  # alignment steps = this × tiles in the region (batch split over tiles)
+    align_max_levels: int = 8  # LOD cap while aligning (~0.5 m cells on a 64 m tile): poses converge there
+    align_incremental_iterations_per_tile: int = 60  # steps × tiles touched by new submaps, fields frozen
     # confidence
     c_th: float = 0.7
     consensus: bool = True

@@ -1,7 +1,8 @@
-"""Offline fusion of a directory of submaps (``NAME.ply`` + ``NAME.json``), tile by tile, the way the
-service does it: every submap's home tile owns its refined pose; fusing a tile frees its home submaps
-and holds the others at their current (refined, else GPS) map-frame pose; neighbours fused earlier
-pin the shared border so seam vertices coincide.
+"""Offline fusion of a directory of submaps (``NAME.ply`` + ``NAME.json``): the tiles are grouped into
+regions (tiles linked by overlapping submaps), each region's poses are aligned jointly (one pose per
+submap, ``fusion.align``), then each tile is reconstructed with every submap held at its aligned pose;
+neighbours reconstructed earlier pin the shared border so seam vertices coincide (DESIGN.md,
+"Multi-tile consistency").
 
 Output: ``OUT/tiles/{i}_{j}.ply`` (fused PLY, map frame), ``OUT/poses.json``
 (``[{"session_id", "seq", "pose_gps", "pose_refined"}]``) and ``OUT/fusion.json`` (config, per-tile metrics).
@@ -20,6 +21,7 @@ import numpy as np
 from fusion import geo, tiles
 from fusion.errors import FusionError, FusionLibraryError
 from fusion.meshio import read_submap_ply, write_fused_ply
+from fusion.regions import regions
 from fusion.types import FusionResult, Pose, ProgressCallback, ProgressEvent, Sigma, SubmapInput, TileSpec
 
 if TYPE_CHECKING:
@@ -41,7 +43,7 @@ class LoadedSubmap:
     input: SubmapInput
     pose_gps: Pose
     tiles: list[tuple[int, int]]
-    home: tuple[int, int]
+    home: tuple[int, int]  # tile of the posed centre; no pose ownership any more (the ablation harness reads it)
 
 
 def _sigma(meta: dict, key: str, default: Sigma) -> Sigma:
@@ -100,29 +102,61 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
                tile_size: float = 64.0, progress: ProgressCallback | None = None,
                refined: dict[str, Pose] | None = None, fixed_poses: dict[str, Pose] | None = None,
                on_tile: Callable[[tuple[int, int], FusionResult], None] | None = None,
-               skipped: dict[str, str] | None = None) -> dict[tuple[int, int], FusionResult]:
-    """Fuse ``tile_keys`` in order. ``refined`` (submap id → map pose) is updated in place with the
-    poses each tile's home submaps get. ``fixed_poses``: if given, every submap is held at that pose
-    (no pose optimisation; e.g. true poses for an oracle). A tile the fusion finds no data in (its
-    submaps only graze it through their GPS uncertainty) is recorded in ``skipped`` (else raised)."""
+               skipped: dict[str, str] | None = None,
+               align_metrics: list[dict[str, Any]] | None = None) -> dict[tuple[int, int], FusionResult]:
+    """Fuse ``tile_keys``: align each region, then reconstruct each tile with the poses fixed.
+
+    1. Regions: the requested tiles linked by the submaps overlapping them (``fusion.regions``).
+    2. Alignment (``fusion.align.align_region``): every submap of a region free, one pose per submap,
+       starting from ``refined`` (a previous fusion) else GPS; the GPS prior anchors to the GPS fix.
+       ``refined`` (submap id → map pose) is updated in place with the aligned poses.
+    3. Reconstruction (``fuse_tile``): each tile with every submap held at its aligned pose, in sorted
+       (i, j) order so neighbours reconstructed earlier pin the shared border.
+
+    Tiles are processed in sorted order whatever order ``tile_keys`` lists them in, so the result does
+    not depend on it. ``fixed_poses``: if given, every submap is held at that pose and alignment is
+    skipped (e.g. true poses for an oracle). A tile (or region) the fusion finds no data in (its
+    submaps only graze it through their GPS uncertainty) is recorded in ``skipped`` (else raised).
+    ``align_metrics``: if given, each region's alignment metrics are appended to it."""
+    from fusion.align import align_region
     from fusion.reconstruct import fuse_tile
 
     refined = {} if refined is None else refined
+    keys = sorted({(int(i), int(j)) for i, j in tile_keys})
+    if fixed_poses is None:
+        by_id = {s.input.id: s for s in submaps}
+        found = regions({s.input.id: s.tiles for s in submaps}, only=keys)
+        for r, region in enumerate(found):
+            inputs = [replace(by_id[sid].input, pose_init=refined.get(sid, by_id[sid].pose_gps),
+                              pose_gps=by_id[sid].pose_gps, free=True) for sid in region.submaps]
+
+            def align_progress(ev: ProgressEvent, r: int = r, n_tiles: int = len(region.tiles)) -> None:
+                stage = f"region {r + 1}/{len(found)} ({n_tiles} tiles) {ev.stage}"
+                progress(ProgressEvent(ev.iteration, ev.total, ev.losses, stage))  # type: ignore[misc]
+
+            try:
+                aligned = align_region(inputs, [TileSpec(i, j, tile_size) for i, j in region.tiles], config,
+                                       progress=align_progress if progress else None)
+            except FusionError as exc:
+                if skipped is None:
+                    raise
+                skipped["region " + ",".join(f"{i}_{j}" for i, j in region.tiles)] = exc.message
+                continue
+            refined.update(aligned.poses)
+            if align_metrics is not None:
+                align_metrics.append(aligned.metrics | {"tiles": [list(t) for t in region.tiles]})
     results: dict[tuple[int, int], FusionResult] = {}
-    for n, key in enumerate(tile_keys):
+    for n, key in enumerate(keys):
         inputs = []
         for s in submaps:
             if key not in s.tiles:
                 continue
-            if fixed_poses is not None:
-                inputs.append(replace(s.input, pose_init=fixed_poses[s.input.id], free=False))
-            else:
-                pose = refined.get(s.input.id, s.pose_gps)
-                inputs.append(replace(s.input, pose_init=pose, free=s.home == key))
+            pose = fixed_poses[s.input.id] if fixed_poses is not None else refined.get(s.input.id, s.pose_gps)
+            inputs.append(replace(s.input, pose_init=pose, free=False))
         pins = tiles.border_pins(*key, lambda k: results[k].border if k in results else None)
 
         def tile_progress(ev: ProgressEvent, n: int = n, key: tuple[int, int] = key) -> None:
-            stage = f"tile {key[0]}_{key[1]} ({n + 1}/{len(tile_keys)}) {ev.stage}"
+            stage = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)}) {ev.stage}"
             progress(ProgressEvent(ev.iteration, ev.total, ev.losses, stage))  # type: ignore[misc]
 
         try:
@@ -133,7 +167,6 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
                 raise
             skipped[f"{key[0]}_{key[1]}"] = exc.message
             continue
-        refined.update(result.poses)
         results[key] = result
         if on_tile is not None:
             on_tile(key, result)
@@ -142,8 +175,9 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
 
 def fuse_directory(in_dir: str | Path, out_dir: str | Path, config: FusionConfig, tile_size: float = 64.0,
                    origin: str | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
-    """Fuse every submap in ``in_dir`` into ``out_dir`` (see the module docstring). Tiles are fused in
-    (i, j) order. Returns a summary: tiles, submaps, per-tile metrics."""
+    """Fuse every submap in ``in_dir`` into ``out_dir`` (see the module docstring). Tiles are
+    reconstructed in (i, j) order. Returns a summary: tiles, submaps, per-region alignment and per-tile
+    metrics."""
     submaps = load_directory(in_dir, tile_size, origin)
     keys = sorted({k for s in submaps for k in s.tiles})
     out = Path(out_dir)
@@ -156,13 +190,15 @@ def fuse_directory(in_dir: str | Path, out_dir: str | Path, config: FusionConfig
         tile_metrics[f"{key[0]}_{key[1]}"] = result.metrics
 
     skipped: dict[str, str] = {}
-    fuse_tiles(submaps, keys, config, tile_size, progress, refined, on_tile=write_tile, skipped=skipped)
+    align: list[dict[str, Any]] = []
+    fuse_tiles(submaps, keys, config, tile_size, progress, refined, on_tile=write_tile, skipped=skipped,
+               align_metrics=align)
     poses = [{"session_id": s.input.session_id, "seq": s.input.seq, "id": s.input.id, "pose_gps": s.pose_gps.to_json(),
               "pose_refined": refined[s.input.id].to_json() if s.input.id in refined else None} for s in submaps]
     poses.sort(key=lambda p: (p["session_id"], p["seq"]))
     (out / "poses.json").write_text(json.dumps(poses, indent=1))
     summary = {"tiles": [list(k) for k in keys], "submaps": len(submaps), "tile_size_m": tile_size,
-               "config": config.to_dict(), "metrics": tile_metrics,
+               "config": config.to_dict(), "metrics": tile_metrics, "alignment": align,
                "skipped": skipped}
     (out / "fusion.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary

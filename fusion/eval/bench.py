@@ -1,5 +1,6 @@
 """Benchmark on a synthetic fleet: simulate, fuse one 64 m tile the way the offline path does,
-evaluate against the ground truth, print a table (and optionally write every figure as JSON).
+evaluate against the ground truth, print a table (and optionally write every figure as JSON). This is
+the one-tile bench (``--tiles 1``); the default multi-tile bench is ``fusion.bench_region``.
 
 Rows are functions ``row_*(ctx) -> dict`` registered in ``ROWS``; to add an ablation, write one more
 function (e.g. fuse with a changed ``FusionConfig``) and register it. ``evaluate_mesh`` turns a fused
@@ -79,13 +80,13 @@ class BenchContext:
 
 
 def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY,
-            tile_size: float = TILE_SIZE) -> BenchContext:
-    """Load the uploads the way the offline path does, and the truth cropped to the benchmark tile
-    (tile (0, 0), ``tile_size`` metres)."""
+            tile_size: float = TILE_SIZE, region: metrics.Region | None = None) -> BenchContext:
+    """Load the uploads the way the offline path does, and the truth cropped to ``region`` (default the
+    benchmark tile (0, 0), ``tile_size`` metres)."""
     submaps = load_directory(sim_dir, tile_size)
     truth = load_ground_truth(sim_dir)
     lo = (TILE[0] * tile_size, TILE[1] * tile_size)
-    region = (lo, (lo[0] + tile_size, lo[1] + tile_size))
+    region = region or (lo, (lo[0] + tile_size, lo[1] + tile_size))
     gt = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=2), region)
     obs = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=3,
                                               face_mask=truth.observed), region)
@@ -253,10 +254,16 @@ def format_table(report: dict[str, Any]) -> str:
 def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
               json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
               out: Callable[[str], None] = print, tile_size: float | None = None,
-              vertex_noise_m: float | None = None) -> dict[str, Any]:
+              vertex_noise_m: float | None = None, tiles: int = 3) -> dict[str, Any]:
     """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
     ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
-    (and optionally write to ``json_path``) every figure."""
+    (and optionally write to ``json_path``) every figure, with ``tiles`` = 1. ``tiles`` > 1 (default 3):
+    the multi-tile bench over a ``tiles``×``tiles`` core (``fusion.bench_region``)."""
+    if tiles > 1:
+        from fusion.bench_region import run_region_bench
+
+        return run_region_bench(preset, sessions, gps_noise, seed, json_path, rows, config, out, tile_size,
+                                vertex_noise_m, tiles)
     from fusion.config import FusionConfig
     from fusion.eval.synth.fleet import FleetParams
     from fusion.eval.synth.world import WorldParams

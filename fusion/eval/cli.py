@@ -103,8 +103,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
     unknown = [r for r in rows or [] if r not in ROWS]
     if unknown:
         return _fail(f"unknown bench rows {unknown} (known: {', '.join(ROWS)})")
+    config = None
+    if args.iterations or args.align_iterations:  # CPU-time knobs of the multi-tile bench (reported in its JSON)
+        from fusion.config import FusionConfig
+
+        base = FusionConfig.preset(args.preset)
+        config = base.with_(iterations=args.iterations or base.iterations,
+                            align_iterations_per_tile=args.align_iterations or base.align_iterations_per_tile)
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg), seed=args.seed,
-              json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m)
+              json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m,
+              tiles=args.tiles, config=config)
     return 0
 
 
@@ -140,13 +148,19 @@ def register(subparsers: Any) -> None:
     p.add_argument("--origin", default=None, help="geodetic map origin 'lat,lon,alt' for geodetic GPS fixes")
     p.set_defaults(func=cmd_fuse)
 
-    p = subparsers.add_parser("bench", help="simulate, fuse one tile and evaluate against the ground truth")
+    p = subparsers.add_parser("bench", help="simulate, fuse (3×3 tiles by default) and evaluate against the ground truth")
     p.add_argument("--preset", choices=PRESETS, default="cpu", help="fusion configuration (default cpu)")
     p.add_argument("--json", default=None, metavar="FILE", help="write every figure to FILE")
     add_fleet_arguments(p)
     p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")
     p.add_argument("--tile-size", type=float, default=None,
                    help="benchmark tile edge, metres (default: 64 for cpu, 128 for paper)")
+    p.add_argument("--tiles", type=_positive_int, default=3,
+                   help="core of N×N tiles (default 3: align the region, reconstruct 9 tiles); 1: the one-tile bench")
+    p.add_argument("--iterations", type=_positive_int, default=None,
+                   help="reconstruction iterations per tile (default: the preset's)")
+    p.add_argument("--align-iterations", type=_positive_int, default=None,
+                   help="alignment iterations per tile of the region (default: the preset's)")
     p.add_argument("--throughput", action="store_true",
                    help="only measure field training throughput (points/s forward+backward, fusion.eval.perf)")
     from fusion.eval.ablations import add_bench_arguments

@@ -24,7 +24,7 @@ def tiny_config():
     return FusionConfig.preset("cpu").with_(
         iterations=30, pose_warmup=3, surface_samples=512, space_samples=512, pool_points=20_000, num_levels=6,
         lod_start_levels=3, max_resolution=64, geo_hidden=32, sem_hidden=32, extract_voxel_m=0.5, tile_margin_m=4.0,
-        consensus=False, c_th=0.3,
+        consensus=False, c_th=0.3, align_iterations_per_tile=30,
     )
 
 
@@ -73,42 +73,71 @@ def test_fuse_directory_writes_tiles_and_poses(uploads: Path, tmp_path: Path) ->
     assert events and events[-1].stage.startswith("tile ")
 
 
-def test_tiles_own_their_home_submaps_and_pin_borders(multi_tile_uploads: Path, tmp_path: Path,
-                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    """Ownership logic with a stand-in fusion: free only in the home tile, held at the refined pose
-    elsewhere, neighbours fused earlier pin the shared border."""
-    import fusion.reconstruct
-    from fusion.offline import fuse_directory
-    from fusion.types import FusedMesh, FusionResult, Pose
+def _fake_fuse_tile(calls: list):
+    from fusion.types import FusedMesh, FusionResult
 
-    calls = []
-
-    def fake_fuse_tile(submaps, tile, config, progress=None, border_pins=None, device=None):
+    def fake(submaps, tile, config, progress=None, border_pins=None, device=None):
         calls.append((tile, {s.id: (s.free, s.pose_init) for s in submaps}, border_pins))
-        shifted = {s.id: Pose(s.pose_init.t + np.array([0.1, 0.0, 0.0]), s.pose_init.q) for s in submaps if s.free}
         border = {side: {"tile": (tile.i, tile.j), "side": side} for side in ("x0", "x1", "y0", "y1")}
-        return FusionResult(FusedMesh.empty(), shifted, {"points_per_s": 1.0}, {}, border)
+        return FusionResult(FusedMesh.empty(), {}, {"points_per_s": 1.0}, {}, border)
 
-    monkeypatch.setattr(fusion.reconstruct, "fuse_tile", fake_fuse_tile)
-    summary = fuse_directory(multi_tile_uploads, tmp_path, tiny_config(), tile_size=TILE)
-    assert len(summary["tiles"]) > 1
-    free_count: dict[str, int] = {}
-    refined: dict[str, Pose] = {}
-    fused: set[tuple[int, int]] = set()
-    for tile, inputs, pins in calls:
-        for sid, (free, pose) in inputs.items():
-            free_count[sid] = free_count.get(sid, 0) + free
-            if sid in refined:  # held (or re-freed) at the pose its home tile gave it
-                assert np.allclose(pose.t, refined[sid].t)
-        refined.update({sid: Pose(p.t + np.array([0.1, 0, 0]), p.q) for sid, (free, p) in inputs.items() if free})
-        left = (tile.i - 1, tile.j)
-        if left in fused:
-            assert pins["x0"] == {"tile": left, "side": "x1"}
-        fused.add((tile.i, tile.j))
-    assert set(free_count.values()) == {1}
-    poses = json.loads((tmp_path / "poses.json").read_text())
-    assert all(p["pose_refined"] is not None for p in poses)
-    assert len(list((tmp_path / "tiles").glob("*.ply"))) == len(calls)
+    return fake
+
+
+@pytest.mark.timeout(300)
+def test_region_aligned_then_tiles_reconstructed_with_fixed_poses(
+        multi_tile_uploads: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Real (tiny) region alignment, stand-in reconstruction: every tile is reconstructed with every
+    submap held at its aligned pose, in sorted order, neighbours pin the shared border; the poses do
+    not depend on the order the tiles were listed in."""
+    import fusion.reconstruct
+    from fusion.offline import fuse_tiles, load_directory
+
+    submaps = load_directory(multi_tile_uploads, TILE)
+    keys = sorted({k for s in submaps for k in s.tiles})
+    assert len(keys) > 1
+    cfg = tiny_config().with_(align_iterations_per_tile=3)  # a few steps: poses move, order must not matter
+    runs = []
+    for order in (keys, list(reversed(keys)), keys[1::2] + keys[0::2]):
+        calls: list = []
+        monkeypatch.setattr(fusion.reconstruct, "fuse_tile", _fake_fuse_tile(calls))
+        refined: dict = {}
+        align: list = []
+        fuse_tiles(submaps, order, cfg, TILE, refined=refined, align_metrics=align)
+        runs.append((calls, refined))
+        assert len(align) == 1 and align[0]["num_free"] == len(submaps)
+        assert [(t.i, t.j) for t, _, _ in calls] == keys  # sorted, whatever the order given
+        fused: set = set()
+        for tile, inputs, pins in calls:
+            for sid, (free, pose) in inputs.items():
+                assert not free and np.allclose(pose.t, refined[sid].t)
+            left = (tile.i - 1, tile.j)
+            if left in fused:
+                assert pins["x0"] == {"tile": left, "side": "x1"}
+            fused.add((tile.i, tile.j))
+    assert set(runs[0][1]) == {s.input.id for s in submaps}
+    assert any(not np.allclose(runs[0][1][s.input.id].t, s.pose_gps.t) for s in submaps)
+    for _, refined in runs[1:]:
+        for sid, pose in runs[0][1].items():
+            assert np.allclose(refined[sid].t, pose.t, atol=1e-6) and np.allclose(refined[sid].q, pose.q, atol=1e-6)
+
+
+def test_fixed_poses_skip_alignment(multi_tile_uploads: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import fusion.align
+    import fusion.reconstruct
+    from fusion.offline import fuse_tiles, load_directory
+
+    def no_align(*args, **kwargs):
+        raise AssertionError("alignment must not run with fixed poses")
+
+    calls: list = []
+    monkeypatch.setattr(fusion.reconstruct, "fuse_tile", _fake_fuse_tile(calls))
+    monkeypatch.setattr(fusion.align, "align_region", no_align)
+    submaps = load_directory(multi_tile_uploads, TILE)
+    fixed = {s.input.id: s.pose_gps for s in submaps}
+    keys = sorted({k for s in submaps for k in s.tiles})
+    out = fuse_tiles(submaps, keys, tiny_config(), TILE, fixed_poses=fixed)
+    assert sorted(out) == keys and all(not free for _, inputs, _ in calls for free, _ in inputs.values())
 
 
 def test_bad_ply_names_the_file(uploads: Path, tmp_path: Path) -> None:

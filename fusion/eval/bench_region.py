@@ -1,0 +1,232 @@
+"""Multi-tile benchmark: a synthetic fleet driving through an n×n-tile core (default 3×3 tiles of 64 m),
+fused the way the offline path does (``fuse_tiles``: align the region, then reconstruct each tile with
+the poses fixed), evaluated against the ground truth over the whole core and per tile.
+
+Figures (same conventions as ``fusion.eval.bench``; d = 0.2 m):
+- whole map: gauge-aligned geo P/R/F and sem F of all core tiles' meshes together, moved by the rigid
+  Umeyama fit of *all* submaps' fused poses to their true poses (``gauge_m``/``gauge_deg`` its size),
+  and absolute (``abs_*``) figures; pose RMSE (m, deg) of all submaps after rigid alignment.
+- per tile: the same gauge-aligned figures cropped to the tile, reconstruction seconds.
+- seams (``seam_gaps``): for every shared border of two reconstructed tiles, the distance from each
+  tile's boundary vertices (on the border line) to the other tile's: ``seam_max_m`` (widest gap or
+  double surface), ``seam_p99_m`` and the share of boundary vertices farther than one extraction voxel.
+- timing: alignment seconds per region (and per tile), reconstruction seconds per tile, total.
+
+Only the core tiles are fused (the submaps' data reach ~30 m beyond the core; those fringe tiles
+would more than double the CPU time and are not evaluated).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fusion.eval import metrics
+from fusion.eval.bench import ABS_KEYS, BenchContext, _fmt, _peak_memory, evaluate_mesh, prepare
+from fusion.offline import fuse_tiles
+from fusion.types import FusedMesh, FusionResult, Pose
+
+TARGETS = {"geo_f": 0.92, "sem_f": 0.80, "pose_trans_m": 0.10, "pose_rot_deg": 0.2}
+
+
+def merge_meshes(meshes: list[FusedMesh]) -> FusedMesh:
+    """One mesh holding all ``meshes`` (vertices concatenated; faces re-indexed)."""
+    meshes = [m for m in meshes if len(m.faces)]
+    if not meshes:
+        return FusedMesh.empty()
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    return FusedMesh(
+        np.concatenate([m.vertices for m in meshes]).astype(np.float32),
+        np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]).astype(np.int32),
+        np.concatenate([m.vertex_labels for m in meshes]),
+        np.concatenate([m.vertex_confidence for m in meshes]),
+        np.concatenate([m.face_labels for m in meshes]),
+    )
+
+
+def seam_gaps(results: dict[tuple[int, int], FusionResult], tile_size: float, voxel_m: float,
+              tol: float = 1e-3) -> dict[str, Any]:
+    """Gaps / double surfaces along the borders shared by reconstructed tiles (see the module docstring)."""
+    worst, p99s, far, total, borders = 0.0, [], 0, 0, 0
+    per: dict[str, float] = {}
+    for (i, j), res in results.items():
+        for axis, nb in ((0, (i + 1, j)), (1, (i, j + 1))):
+            other = results.get(nb)
+            if other is None:
+                continue
+            line = (nb[axis]) * tile_size
+            a = res.mesh.vertices[np.abs(res.mesh.vertices[:, axis] - line) < tol].astype(np.float64)
+            b = other.mesh.vertices[np.abs(other.mesh.vertices[:, axis] - line) < tol].astype(np.float64)
+            if len(a) == 0 and len(b) == 0:
+                continue
+            borders += 1
+            if len(a) == 0 or len(b) == 0:  # one side has surface on the border, the other none
+                per[f"{i}_{j}|{nb[0]}_{nb[1]}"] = float("inf")
+                far += len(a) + len(b)
+                total += len(a) + len(b)
+                worst = float("inf")
+                continue
+            d = np.concatenate([cKDTree(b).query(a)[0], cKDTree(a).query(b)[0]])
+            per[f"{i}_{j}|{nb[0]}_{nb[1]}"] = float(d.max())
+            worst = max(worst, float(d.max()))
+            p99s.append(float(np.quantile(d, 0.99)))
+            far += int((d > voxel_m + 1e-6).sum())
+            total += len(d)
+    return {"seam_borders": borders, "seam_max_m": worst if borders else None,
+            "seam_p99_m": max(p99s) if p99s else None, "seam_far_share": far / total if total else None,
+            "seam_voxel_m": voxel_m, "seam_per_border_max_m": per}
+
+
+def _pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, Any]:
+    used = [s for s in ctx.submaps if s.input.id in poses]
+    if not used:
+        return {}
+    t, r = metrics.pose_rmse([poses[s.input.id] for s in used], [ctx.truth.poses[s.input.id] for s in used])
+    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(used)}
+
+
+def _gauge(ctx: BenchContext, poses: dict[str, Pose], anchors_per_submap: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid (R, t) from the fused map's gauge to the truth's, over every submap (poses only)."""
+    est = [poses.get(s.input.id, s.pose_gps) for s in ctx.submaps]
+    true = [ctx.truth.poses[s.input.id] for s in ctx.submaps]
+    anchors = []
+    for s in ctx.submaps:
+        v = np.asarray(s.input.mesh.vertices, np.float64)
+        anchors.append(v[np.linspace(0, len(v) - 1, min(anchors_per_submap, len(v))).astype(int)])
+    return metrics.gauge_alignment(est, true, anchors)
+
+
+def _crop_ctx(ctx: BenchContext, region: metrics.Region) -> BenchContext:
+    return replace(ctx, region=region, gt_all=metrics.crop(ctx.gt_all, region),
+                   gt_observed=metrics.crop(ctx.gt_observed, region), transient=metrics.crop(ctx.transient, region),
+                   rows={})
+
+
+def evaluate_region(ctx: BenchContext, results: dict[tuple[int, int], FusionResult], poses: dict[str, Pose] | None,
+                    ) -> dict[str, Any]:
+    """Whole-map (gauge-aligned and absolute) and per-tile figures; ``poses`` None: already in the true gauge."""
+    align = _gauge(ctx, poses) if poses is not None else (np.eye(3), np.zeros(3))
+    whole = merge_meshes([r.mesh for r in results.values()])
+    out = evaluate_mesh(ctx, whole, align)
+    absolute = evaluate_mesh(ctx, whole) if poses is not None else out
+    (x0, y0), (x1, y1) = ctx.region
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    r, t = align
+    out |= {f"abs_{k}": absolute[k] for k in ABS_KEYS}
+    out |= {"gauge_m": float(np.linalg.norm(r @ centre + t - centre)),
+            "gauge_deg": float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))}
+    per_tile = {}
+    for (i, j), res in sorted(results.items()):
+        s = ctx.tile_size
+        figs = evaluate_mesh(_crop_ctx(ctx, ((i * s, j * s), ((i + 1) * s, (j + 1) * s))), res.mesh, align)
+        per_tile[f"{i}_{j}"] = {k: figs[k] for k in ("geo_p", "geo_r", "geo_f", "sem_f")} | {
+            "recon_s": res.metrics.get("duration_s"), "faces": figs["faces"]}
+    out["per_tile"] = per_tile
+    return out
+
+
+def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose] | None) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    refined: dict[str, Pose] = {}
+    align: list[dict[str, Any]] = []
+    skipped: dict[str, str] = {}
+    results = fuse_tiles(ctx.submaps, keys, ctx.config, ctx.tile_size, refined=refined, fixed_poses=fixed,
+                         skipped=skipped, align_metrics=align)
+    wall = time.perf_counter() - t0
+    figs = evaluate_region(ctx, results, None if fixed is not None else refined)
+    figs |= seam_gaps(results, ctx.tile_size, ctx.config.extract_voxel_m)
+    align_s = sum(a["duration_s"] for a in align)
+    recon = [r.metrics["duration_s"] for r in results.values()]
+    figs |= {"wall_s": wall, "align_s": align_s, "align_s_per_tile": align_s / max(1, len(keys)),
+             "recon_s_per_tile": float(np.mean(recon)) if recon else None, "tiles_fused": len(results),
+             "skipped": skipped, "alignment": align}
+    if fixed is None:
+        figs |= _pose_figures(ctx, refined)
+    return figs
+
+
+def format_region_table(report: dict[str, Any]) -> str:
+    cols = [("geo P", "geo_p", ".3f"), ("geo R", "geo_r", ".3f"), ("geo F", "geo_f", ".3f"), ("sem F", "sem_f", ".3f"),
+            ("abs geo F", "abs_geo_f", ".3f"), ("trans m", "pose_trans_m", ".3f"), ("rot deg", "pose_rot_deg", ".3f"),
+            ("seam max", "seam_max_m", ".3f"), ("align s", "align_s", ".0f"), ("recon s/t", "recon_s_per_tile", ".0f"),
+            ("wall s", "wall_s", ".0f")]
+    lines = [f"{'row':<8}" + "".join(f"{c[0]:>11}" for c in cols)]
+    for name, row in report["rows"].items():
+        lines.append(f"{name:<8}" + "".join(f"{_fmt(row.get(k), s):>11}" for _, k, s in cols))
+    lines.append("whole core: geo/sem gauge-aligned (rigid Umeyama fit of all submaps' fused poses to the truth); "
+                 "pose RMSE after rigid alignment; seam max: widest distance between two tiles' border vertices")
+    for name, row in report["rows"].items():
+        if "per_tile" not in row:
+            continue
+        lines.append(f"  {name} per tile (geo F / sem F / recon s):  " + "  ".join(
+            f"{k}: {v['geo_f']:.3f}/{v['sem_f']:.3f}/{_fmt(v['recon_s'], '.0f')}" for k, v in row["per_tile"].items()))
+        if row.get("seam_borders"):
+            lines.append(f"  {name} seams: {row['seam_borders']} borders, max {_fmt(row['seam_max_m'])} m, "
+                         f"p99 {_fmt(row['seam_p99_m'])} m, share > voxel ({row['seam_voxel_m']} m) "
+                         f"{_fmt(row['seam_far_share'], '.2%')}")
+        if row.get("alignment"):
+            a = row["alignment"][0]
+            lines.append(f"  {name} alignment: {a['iterations']} steps over {a['num_tiles']} tiles, "
+                         f"{a['num_submaps']} submaps, {a['duration_s']:.0f} s")
+    lines.append(f"submaps {report['submaps']}, sessions {report['sessions']}, tiles {report['tiles']}×{report['tiles']} "
+                 f"of {report['tile_size_m']:g} m, preset {report['preset']}, seed {report['seed']}, "
+                 f"simulate {report['simulate_s']:.0f} s, peak RSS {report['memory']['peak_rss_mib']:.0f} MiB")
+    fused = report["rows"].get("fused", {})
+    for key, target in TARGETS.items():
+        v = fused.get(key)
+        ok = None if v is None else (v >= target if key in ("geo_f", "sem_f") else v <= target)
+        lines.append(f"  target {key:<14} {_fmt(v)} (target {target}) {dict([(True, 'ok'), (False, 'MISSED'), (None, 'n/a')])[ok]}")
+    return "\n".join(lines)
+
+
+ROWS = ("gps", "fused", "oracle")
+
+
+def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5),
+                     seed: int = 0, json_path: str | Path | None = None, rows: list[str] | None = None,
+                     config: Any = None, out: Callable[[str], None] = print, tile_size: float | None = None,
+                     vertex_noise_m: float | None = None, tiles: int = 3) -> dict[str, Any]:
+    """Simulate ``sessions`` sessions through a ``tiles``×``tiles`` core of ``tile_size`` m tiles, fuse the
+    core tiles (rows: gps, fused; oracle on request: it doubles the time), print the table, return
+    (and optionally write to ``json_path``) every figure."""
+    from fusion.config import FusionConfig
+    from fusion.eval.synth.fleet import FleetParams
+    from fusion.eval.synth.simulate import simulate
+    from fusion.eval.synth.world import WorldParams
+
+    cfg = config or FusionConfig.preset(preset)
+    size = float(tile_size or (128.0 if preset == "paper" else 64.0))
+    rows = rows or ["gps", "fused"]
+    with tempfile.TemporaryDirectory(prefix="fleetmap-bench-region-") as tmp:
+        t0 = time.perf_counter()
+        world = WorldParams(core_min=(0.0, 0.0), core_max=(tiles * size, tiles * size))
+        fleet = FleetParams(vertex_noise_m=vertex_noise_m) if vertex_noise_m is not None else None
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet)
+        sim_s = time.perf_counter() - t0
+        ctx = prepare(Path(tmp), cfg, tile_size=size, region=((0.0, 0.0), (tiles * size, tiles * size)))
+    keys = [(i, j) for i in range(tiles) for j in range(tiles)]
+    report_rows: dict[str, dict[str, Any]] = {}
+    for name in rows:
+        if name == "gps":
+            report_rows[name] = _pose_figures(ctx, {s.input.id: s.pose_gps for s in ctx.submaps})
+        elif name == "fused":
+            report_rows[name] = _fuse(ctx, keys, None)
+        elif name == "oracle":
+            report_rows[name] = _fuse(ctx, keys, dict(ctx.truth.poses))
+        else:
+            raise ValueError(f"unknown region bench row {name!r} (known: {', '.join(ROWS)})")
+    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "tiles": tiles,
+              "tile_size_m": size, "simulate_s": sim_s, "submaps": len(ctx.submaps), "rows": report_rows,
+              "memory": _peak_memory(), "config": cfg.to_dict()}
+    out(format_region_table(report))
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(report, indent=1, default=str))
+    return report

@@ -1,0 +1,79 @@
+"""Region alignment: one pose per submap across tiles; incremental alignment against frozen fields."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fusion.align import align_levels, align_region
+from fusion.types import Pose, TileSpec
+from tests.scene import tiny_config, two_sessions
+
+SIZE = 16.0
+TILES = [TileSpec(0, 0, SIZE), TileSpec(1, 0, SIZE)]
+SHIFT = Pose(np.array([8.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0]))  # the 16 m street spans x 8..24
+
+
+def _scene(offset=(0.5, -0.4, 0.1), yaw_deg=1.0):
+    """Two sessions, each one submap crossing the border x = 16 between tiles (0, 0) and (1, 0)."""
+    subs, _ = two_sessions(offset=offset, yaw_deg=yaw_deg)
+    out = []
+    for s in subs:
+        pose = SHIFT.compose(s.pose_init)
+        out.append(replace(s, pose_init=pose, pose_gps=pose))
+    return out
+
+
+def _relative(poses: dict[str, Pose]) -> tuple[float, float]:
+    rel = poses["a"].inverse().compose(poses["b"])
+    return float(np.linalg.norm(rel.t)), float(np.degrees(2 * np.arccos(min(1.0, abs(rel.q[0])))))
+
+
+def _config(**kw):
+    return tiny_config(**({"align_iterations_per_tile": 40, "align_max_levels": 5, "surface_samples": 768, "space_samples": 768} | kw))
+
+
+@pytest.mark.timeout(300)
+def test_align_region_reduces_pose_error_across_the_border() -> None:
+    subs = _scene()
+    before = _relative({s.id: s.pose_init for s in subs})
+    events = []
+    res = align_region(list(reversed(subs)), list(reversed(TILES)), _config(), progress=events.append)
+    after = _relative(res.poses)
+    assert set(res.poses) == {"a", "b"}
+    assert after[0] < 0.5 * before[0], (before, after)
+    assert after[1] < before[1] + 0.3, (before, after)  # yaw: fuse_tile does not fix it in 80 steps here either
+    m = res.metrics
+    assert m["num_tiles"] == 2 and m["num_submaps"] == 2 and m["num_free"] == 2
+    assert m["iterations"] == 2 * 40 and not m["incremental"]
+    assert set(m["tile_pool_points"]) == {"0_0", "1_0"} and set(res.fields) == {(0, 0), (1, 0)}
+    assert events and events[-1].stage == "align" and events[-1].iteration == events[-1].total
+    # heads are shared by the tiles' fields
+    f0, f1 = res.fields[(0, 0)], res.fields[(1, 0)]
+    assert all(np.array_equal(f0[k].numpy(), f1[k].numpy()) for k in f0 if k.startswith(("geo.", "sem.")))
+
+
+def test_incremental_alignment_moves_only_the_new_submaps() -> None:
+    subs = _scene(offset=(0.0, 0.0, 0.0), yaw_deg=0.0)
+    cfg = _config(align_incremental_iterations_per_tile=20)
+    base = align_region([subs[0]], TILES, cfg.with_(align_iterations_per_tile=25))
+    fixed = replace(subs[0], pose_init=base.poses["a"], free=False)
+    new = replace(subs[1], pose_init=Pose(subs[1].pose_init.t + np.array([0.4, -0.3, 0.0]), subs[1].pose_init.q))
+    res = align_region([fixed, new], TILES, cfg, frozen=base.fields)
+    assert set(res.poses) == {"b"}
+    assert res.metrics["incremental"] and res.metrics["frozen_tiles"] == [[0, 0], [1, 0]]
+    assert res.metrics["iterations"] == 2 * cfg.align_incremental_iterations_per_tile
+    # the held fields are returned unchanged
+    for key, state in base.fields.items():
+        assert all(np.array_equal(state[k].numpy(), res.fields[key][k].numpy()) for k in state)
+    err_before = np.linalg.norm(new.pose_init.t - subs[1].pose_gps.t)
+    err_after = np.linalg.norm(res.poses["b"].t - base.poses["a"].t)  # truth: b on a (same street)
+    assert err_after < 0.5 * err_before, (err_before, err_after)
+
+
+def test_align_levels_capped() -> None:
+    cfg = tiny_config(align_max_levels=5)
+    assert align_levels(0, 100, cfg) == cfg.lod_start_levels
+    assert max(align_levels(i, 100, cfg) for i in range(100)) == 5
