@@ -49,8 +49,18 @@ def api(settings: Settings, background: bool = False) -> Iterator[TestClient]:
 
 def session_factory(app: Any) -> Any:
     """The app's sessionmaker (``app.state.session_factory``)."""
-    state = app.state
-    return getattr(state, "session_factory", None) or state.sessionmaker
+    return app.state.session_factory
+
+
+@contextmanager
+def in_process(tmp_path: Path) -> Iterator[Any]:
+    """The app with its settings and sessionmaker attached (``.settings``, ``.db``), no background work:
+    tests tick the scheduler and run jobs themselves."""
+    settings = make_settings(tmp_path)
+    with api(settings) as client:
+        client.settings = settings  # type: ignore[attr-defined]
+        client.db = session_factory(client.app)  # type: ignore[attr-defined]
+        yield client
 
 
 _MESH: bytes | None = None
@@ -98,32 +108,39 @@ def fake_mesh(tile: TileSpec) -> FusedMesh:
     )
 
 
-class FakeFusion:
-    """Stands in for ``fusion.reconstruct.fuse_tile``: free poses move by ``shift`` metres along x.
-
-    ``during`` runs inside the "fusion" (e.g. an upload that arrives meanwhile); ``error`` is raised.
-    """
+class _FakeStage:
+    """A stand-in for one fusion stage: records its calls, runs ``during`` inside (e.g. an upload that
+    arrives meanwhile), raises ``error``; free poses move by ``shift`` metres along x."""
 
     def __init__(self, shift: float = 0.0, error: BaseException | None = None) -> None:
         self.shift = shift
         self.error = error
-        self.calls: list[tuple[TileSpec, list[SubmapInput]]] = []
+        self.calls: list[tuple[Any, list[SubmapInput]]] = []
         self.during: Callable[[], None] | None = None
 
-    def __call__(self, inputs: Any, keeper: Any) -> FusionResult:
-        self.calls.append((inputs.tile, inputs.submaps))
+    def _moved(self, where: Any, submaps: list[SubmapInput]) -> dict[str, Pose]:
+        self.calls.append((where, submaps))
         if self.during is not None:
             self.during()
         if self.error is not None:
             raise self.error
-        poses = {
-            s.id: Pose(np.asarray(s.pose_init.t) + [self.shift, 0.0, 0.0], s.pose_init.q)
-            for s in inputs.submaps
-            if s.free
-        }
-        return FusionResult(
-            fake_mesh(inputs.tile), poses, {"losses": {"total": 0.1}}, inputs.config.to_dict()
-        )
+        shift = np.array([self.shift, 0.0, 0.0])
+        return {s.id: Pose(np.asarray(s.pose_init.t) + shift, s.pose_init.q) for s in submaps if s.free}
+
+
+class FakeFusion(_FakeStage):
+    """Stands in for the tile reconstruction (``worker.runner._fuse``): a two-triangle mesh."""
+
+    def __call__(self, inputs: Any, keeper: Any) -> FusionResult:
+        poses = self._moved(inputs.tile, inputs.submaps)
+        return FusionResult(fake_mesh(inputs.tile), poses, {"losses": {"total": 0.1}}, inputs.config.to_dict())
+
+
+class FakeAlign(_FakeStage):
+    """Stands in for the region alignment (``worker.runner._align``)."""
+
+    def __call__(self, inputs: Any, keeper: Any) -> tuple[dict[str, Pose], dict[str, Any]]:
+        return self._moved(inputs.tiles, inputs.submaps), {"losses": {"total": 0.1}}
 
 
 def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, interval_s: float = 0.2) -> Any:
@@ -136,29 +153,3 @@ def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, interval
             return last
         time.sleep(interval_s)
     raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}; last value {last!r}")
-
-
-class FakeAlign:
-    """Stands in for ``fusion.align.align_region``: free poses move by ``shift`` metres along x.
-
-    ``during`` runs inside the "alignment"; ``error`` is raised.
-    """
-
-    def __init__(self, shift: float = 0.0, error: BaseException | None = None) -> None:
-        self.shift = shift
-        self.error = error
-        self.calls: list[tuple[list[TileSpec], list[SubmapInput]]] = []
-        self.during: Callable[[], None] | None = None
-
-    def __call__(self, inputs: Any, keeper: Any) -> tuple[dict[str, Pose], dict[str, Any]]:
-        self.calls.append((inputs.tiles, inputs.submaps))
-        if self.during is not None:
-            self.during()
-        if self.error is not None:
-            raise self.error
-        poses = {
-            s.id: Pose(np.asarray(s.pose_init.t) + [self.shift, 0.0, 0.0], s.pose_init.q)
-            for s in inputs.submaps
-            if s.free
-        }
-        return poses, {"losses": {"total": 0.1}}

@@ -18,7 +18,15 @@ from sqlalchemy import select, update
 from fusion.errors import FusionError
 from service import schedule as scheduler
 from service.store.models import FusionJob, JobState, Tile, TileVersion, utcnow
-from tests.worker_support import FakeAlign, FakeFusion, api, make_settings, session_factory, upload
+from tests.worker_support import (
+    FakeAlign,
+    FakeFusion,
+    api,
+    in_process,
+    make_settings,
+    session_factory,
+    upload,
+)
 from worker import runner
 from worker.lease import claim_job
 from worker.runner import run_fusion_job
@@ -40,10 +48,7 @@ def align(monkeypatch: pytest.MonkeyPatch) -> FakeAlign:
 
 @pytest.fixture
 def env(tmp_path: Any) -> Any:
-    settings = make_settings(tmp_path)
-    with api(settings) as client:
-        client.settings = settings  # type: ignore[attr-defined]
-        client.db = session_factory(client.app)  # type: ignore[attr-defined]
+    with in_process(tmp_path) as client:
         yield client
 
 

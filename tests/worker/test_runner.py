@@ -13,7 +13,7 @@ import pytest
 from fusion.errors import FusionError
 from service import schedule
 from service.store.models import FusionJob, JobState, Tile, TileState
-from tests.worker_support import FakeAlign, FakeFusion, api, make_settings, session_factory, upload
+from tests.worker_support import FakeAlign, FakeFusion, in_process, upload
 from worker import runner
 from worker.results import Outcome
 from worker.runner import WorkerShutdown, run_fusion_job
@@ -21,13 +21,10 @@ from worker.runner import WorkerShutdown, run_fusion_job
 
 @pytest.fixture
 def env(tmp_path: Any) -> Any:
-    settings = make_settings(tmp_path)
-    with api(settings) as client:
-        client.settings = settings  # type: ignore[attr-defined]
-        client.db = session_factory(client.app)  # type: ignore[attr-defined]
+    with in_process(tmp_path) as client:
         upload(client, "veh-1/a", 0, [10.0, 10.0, 0.0])
         with client.db() as db:
-            client.job_id = schedule.request_fusion(db, 0, 0, settings=settings).id  # type: ignore[attr-defined]
+            client.job_id = schedule.request_fusion(db, 0, 0, settings=client.settings).id  # type: ignore[attr-defined]
         yield client
 
 
