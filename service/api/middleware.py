@@ -13,7 +13,7 @@ import uuid
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.problems import BodyTooLargeError, problem_response
+from service.api.problems import BodyTooLargeError, ProblemError, problem_response
 from service.telemetry import HTTP_REQUESTS, record_rejection, request_id_var
 
 log = logging.getLogger("fleetmap.access")
@@ -112,5 +112,5 @@ class BodyLimitMiddleware:
     async def _reject(self, scope: Scope, receive: Receive, send: Send) -> None:
         exc = BodyTooLargeError(self.max_bytes)
         # the client may still be sending: close the connection rather than drain a huge body
-        response = problem_response(exc.status, exc.detail, code=exc.code, headers={"Connection": "close"})
+        response = problem_response(ProblemError(exc.status, exc.detail, code=exc.code, headers={"Connection": "close"}))
         await response(scope, receive, send)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Awaitable, Callable, Sequence
 from http import HTTPStatus
-from typing import Any
+from typing import Any, TypeVar
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
@@ -81,6 +81,16 @@ class ProblemError(Exception):
         self.headers = headers
 
 
+Row = TypeVar("Row")
+
+
+def found(row: Row | None, detail: str, code: str) -> Row:
+    """``row``, or a 404 problem (``code``) saying what is missing."""
+    if row is None:
+        raise ProblemError(404, detail, code=code)
+    return row
+
+
 class BodyTooLargeError(ProblemError):
     """The request body crossed ``FLEETMAP_MAX_UPLOAD_BYTES`` (raised while streaming)."""
 
@@ -124,19 +134,11 @@ def problem_body(
     return body
 
 
-def problem_response(
-    status: int,
-    detail: str | None = None,
-    *,
-    code: str | None = None,
-    title: str | None = None,
-    errors: list[dict[str, Any]] | None = None,
-    headers: dict[str, str] | None = None,
-) -> JSONResponse:
-    """A response carrying a problem document."""
-    body = problem_body(status, detail, code=code, title=title, errors=errors)
+def problem_response(problem: ProblemError) -> JSONResponse:
+    """The response carrying ``problem``'s document (for handlers and middleware that cannot raise)."""
+    body = problem_body(problem.status, problem.detail, code=problem.code, title=problem.title, errors=problem.errors)
     return JSONResponse(
-        jsonable_encoder(body), status_code=status, headers=headers, media_type=PROBLEM_MEDIA_TYPE
+        jsonable_encoder(body), status_code=problem.status, headers=problem.headers, media_type=PROBLEM_MEDIA_TYPE
     )
 
 
@@ -151,9 +153,7 @@ def _validation_errors(raw: list[Any]) -> list[dict[str, Any]]:
 
 async def _handle_problem(_request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, ProblemError)
-    return problem_response(
-        exc.status, exc.detail, code=exc.code, title=exc.title, errors=exc.errors, headers=exc.headers
-    )
+    return problem_response(exc)
 
 
 async def _handle_http(_request: Request, exc: Exception) -> JSONResponse:
@@ -162,13 +162,13 @@ async def _handle_http(_request: Request, exc: Exception) -> JSONResponse:
     errors = None
     if exc.status_code == 400:  # Starlette's only 400s: a body (multipart form) it cannot parse
         errors = [validation_error(["body"], detail or "malformed request body", "malformed_body")]
-    return problem_response(exc.status_code, detail, errors=errors, headers=dict(exc.headers or {}))
+    return problem_response(ProblemError(exc.status_code, detail, errors=errors, headers=dict(exc.headers or {})))
 
 
 async def _handle_validation(_request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     errors = _validation_errors(list(exc.errors()))
-    return problem_response(422, "the request is invalid", code="invalid_request", errors=errors)
+    return problem_response(ProblemError(422, "the request is invalid", code="invalid_request", errors=errors))
 
 
 async def _handle_fusion(_request: Request, exc: Exception) -> JSONResponse:
@@ -177,9 +177,9 @@ async def _handle_fusion(_request: Request, exc: Exception) -> JSONResponse:
         part = "mesh" if isinstance(exc, MeshValidationError) else "meta"
         loc = list(exc.loc) if exc.loc else [part]
         errors = [validation_error(loc, exc.message, exc.code)]
-        return problem_response(422, exc.message, code=exc.code, errors=errors)
+        return problem_response(ProblemError(422, exc.message, code=exc.code, errors=errors))
     log.error("fusion library error: %s", exc.message)
-    return problem_response(500, exc.message, code=exc.code)
+    return problem_response(ProblemError(500, exc.message, code=exc.code))
 
 
 def _unavailable(service: str, code: str) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
@@ -187,9 +187,7 @@ def _unavailable(service: str, code: str) -> Callable[[Request, Exception], Awai
 
     async def handle(_request: Request, exc: Exception) -> JSONResponse:
         log.error("%s unavailable: %s", service, exc.__class__.__name__, exc_info=exc)
-        return problem_response(
-            503, f"the {service} is unavailable, retry later", code=code, headers={"Retry-After": "5"}
-        )
+        return problem_response(ProblemError(503, f"the {service} is unavailable, retry later", code=code, headers={"Retry-After": "5"}))
 
     return handle
 
@@ -200,7 +198,7 @@ _handle_blobs_unavailable = _unavailable("blob store", "blob_store_unavailable")
 
 async def _handle_unexpected(_request: Request, exc: Exception) -> JSONResponse:
     log.error("unhandled error", exc_info=exc)
-    return problem_response(500, "an unexpected error occurred; it has been logged", code="internal_error")
+    return problem_response(ProblemError(500, "an unexpected error occurred; it has been logged", code="internal_error"))
 
 
 def install_problem_handlers(app: FastAPI) -> None:

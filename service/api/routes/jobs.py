@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from service.api.deps import Operator, SessionDep
-from service.api.problems import ProblemError, problem_responses
+from service.api.problems import found, problem_responses
 from service.api.schemas import JobPublic
 from service.store.models import FusionJob
 
@@ -37,7 +37,4 @@ def job_public(job: FusionJob) -> JobPublic:
 )
 def get_job(job_id: str, db: SessionDep, _principal: Operator) -> JobPublic:
     """State and progress (0..1) of a fusion job."""
-    job = db.get(FusionJob, job_id)
-    if job is None:
-        raise ProblemError(404, f"no fusion job {job_id!r}", code="job_not_found")
-    return job_public(job)
+    return job_public(found(db.get(FusionJob, job_id), f"no fusion job {job_id!r}", "job_not_found"))

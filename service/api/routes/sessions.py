@@ -6,7 +6,7 @@ from fastapi import APIRouter
 from sqlalchemy import select
 
 from service.api.deps import Reader, SessionDep
-from service.api.problems import ProblemError, problem_responses
+from service.api.problems import found, problem_responses
 from service.api.schemas import Pose, SessionPose
 from service.store.models import DrivingSession, Submap
 
@@ -21,8 +21,7 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 )
 def list_session_poses(session_id: str, db: SessionDep, _principal: Reader) -> list[SessionPose]:
     """GPS and refined poses (map frame) per submap, ordered by `seq`. URL-encode `/` in the id."""
-    if db.get(DrivingSession, session_id) is None:
-        raise ProblemError(404, f"no session {session_id!r}", code="session_not_found")
+    found(db.get(DrivingSession, session_id), f"no session {session_id!r}", "session_not_found")
     rows = db.scalars(select(Submap).where(Submap.session_id == session_id).order_by(Submap.seq)).all()
     return [
         SessionPose(

@@ -13,7 +13,7 @@ from fusion.errors import FusionLibraryError
 from service.api.auth import Principal
 from service.api.deps import BlobsDep, Reader, SessionDep, SettingsDep, Uploader
 from service.api.ingest import parse_meta, prepare
-from service.api.problems import BodyTooLargeError, ProblemError, problem_responses
+from service.api.problems import BodyTooLargeError, ProblemError, found, problem_responses
 from service.api.schemas import Pose, SubmapCreated, SubmapPublic
 from service.settings import Settings
 from service.store.blobs import BlobStore
@@ -153,9 +153,7 @@ def _ingest(
 )
 def get_submap(submap_id: str, db: SessionDep, _principal: Reader) -> SubmapPublic:
     """The stored meta plus `pose_gps` and `pose_refined` (map frame) and the tiles it touches."""
-    row = db.get(Submap, submap_id)
-    if row is None:
-        raise ProblemError(404, f"no submap {submap_id!r}", code="submap_not_found")
+    row = found(db.get(Submap, submap_id), f"no submap {submap_id!r}", "submap_not_found")
     meta = row.meta
     return SubmapPublic(
         id=row.id,
