@@ -357,3 +357,24 @@ def test_concurrent_ticks_queue_each_tile_once_on_postgresql(tmp_path: Any) -> N
             assert scheduled == tiles  # every tile once, by exactly one ticker
             assert sorted((j.tile_i, j.tile_j) for j in jobs) == tiles
             client.app.state.engine.dispose()
+
+
+def test_an_alignment_whose_worker_died_is_run_again_and_loses_nothing(
+    env: Any, fake: FakeFusion, align: FakeAlign
+) -> None:
+    created = upload(env, "veh-1/a", 0, [50.0, 10.0, 0.0])  # a region of two tiles
+    upload(env, "veh-1/a", 1, [10.0, 10.0, 0.0])
+    tick(env, 31)
+    job_id = current_job(env)
+    with env.db() as db:
+        assert claim_job(db, job_id, "dead-worker", env.settings) is not None  # dies holding both leases
+    assert [env.get(f"/v1/tiles/{i}/0").json()["state"] for i in (0, 1)] == ["fusing", "fusing"]
+    expired = utcnow() + timedelta(seconds=env.settings.lease_s + 1)
+    with env.db() as db:
+        report = scheduler.tick(db, expired, env.settings)
+    assert sorted(report.reclaimed_tiles) == [(0, 0), (1, 0)] and set(report.requeued_jobs) == {job_id}
+    assert env.get(f"/v1/submaps/{created['id']}").json()["pose_refined"] is None  # nothing half-written
+    align.shift = 0.1
+    align_then_reconstruct(env, (0, 0), (1, 0))
+    assert env.get(f"/v1/submaps/{created['id']}").json()["pose_refined"]["t"] == pytest.approx([50.1, 10.0, 0.0])
+    assert env.get(f"/v1/jobs/{job_id}").json()["state"] == "succeeded"
