@@ -136,6 +136,8 @@ class FusionConfig:
                 c_th=0.5,  # a few iterations leave confidences lower than a full schedule does
                 extract_voxel_m=1.0,
                 tile_margin_m=2.0,
+                align_iterations_per_tile=10,
+                align_incremental_iterations_per_tile=5,
             )
         if name == "paper":
             return FusionConfig(

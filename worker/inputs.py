@@ -24,7 +24,7 @@ from fusion.tiles import border_pins
 from fusion.types import Pose, Sigma, SubmapInput, TileSpec, quat_to_matrix, rotation_angle_deg
 from service.settings import Settings
 from service.store.blobs import BlobStore
-from service.store.models import Submap, SubmapTile, TileVersion
+from service.store.models import Submap, SubmapTile, Tile, TileVersion
 
 
 def fusion_config(settings: Settings) -> FusionConfig:
@@ -56,6 +56,7 @@ class RegionInputs:
     tiles: list[TileSpec]
     config: FusionConfig
     rows: list[tuple[Submap, Pose, bool]]  # (submap row, initial local → map pose, free)
+    fields: dict[tuple[int, int], str] = field(default_factory=dict)  # tile → its last alignment's field blob
     submaps: list[SubmapInput] = field(default_factory=list)
 
     @property
@@ -144,10 +145,15 @@ def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
 
 def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]]) -> RegionInputs:
     """Every submap touching the region's tiles: the unaligned ones free (at their GPS poses), the
-    aligned ones held at their refined poses."""
+    aligned ones held at their refined poses; and the fields earlier alignments left in those tiles."""
     submaps = _submaps_touching(db, keys)
     rows = [(s, _pose_init(s), s.pose_refined is None) for s in submaps]
-    return RegionInputs([TileSpec(i, j, settings.tile_size) for i, j in keys], fusion_config(settings), rows)
+    fields = {}
+    for i, j in keys:
+        tile = db.get(Tile, (i, j))
+        if tile is not None and tile.align_field_sha256:
+            fields[(i, j)] = tile.align_field_sha256
+    return RegionInputs([TileSpec(i, j, settings.tile_size) for i, j in keys], fusion_config(settings), rows, fields)
 
 
 def load_submaps(

@@ -22,7 +22,7 @@ from fusion.types import FusionResult, Pose
 from service.store import tiles
 from service.store.blobs import BlobStore
 from service.store.models import FusionJob, JobKind, JobState, JobTrigger, Submap, TileVersion, new_id, utcnow
-from worker.inputs import RegionInputs, TileInputs, pack_border
+from worker.inputs import TileInputs, pack_border
 from worker.lease import Claim
 
 log = logging.getLogger(__name__)
@@ -157,11 +157,16 @@ def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInpu
 
 
 def commit_alignment(
-    factory: sessionmaker[Session], claim: Claim, inputs: RegionInputs, poses: dict[str, Pose], metrics: dict[str, Any]
+    factory: sessionmaker[Session],
+    claim: Claim,
+    poses: dict[str, Pose],
+    fields: dict[tuple[int, int], str],
+    metrics: dict[str, Any],
 ) -> tuple[Outcome, list[str]]:
     """ONE transaction: the refined pose of every aligned submap (written once: only where none was),
     a reconstruct job for each of the region's tiles (each tile handed from this lease to its job,
-    ``queued``), the align job ``succeeded``. Returns the outcome and the new jobs to enqueue."""
+    ``queued``, with the blob of the field trained there, if any), the align job ``succeeded``. Returns
+    the outcome and the new jobs to enqueue."""
     now = utcnow()
     with factory() as db:
         for submap_id, pose in sorted(poses.items()):
@@ -174,7 +179,7 @@ def commit_alignment(
         for i, j in claim.tiles:
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
                             trigger=JobTrigger.auto.value, created_at=now, enqueued_at=now)
-            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now):
+            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j))):
                 db.rollback()
                 log.warning("job %s: lease lost before commit; alignment discarded", claim.job_id)
                 return Outcome.lost, []

@@ -105,13 +105,28 @@ def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
     )
 
 
-def _align(inputs: RegionInputs, keeper: LeaseKeeper) -> tuple[dict[str, Pose], dict[str, Any]]:
-    """Align the region's free submaps against the rest; returns refined poses (map frame) and metrics."""
+def _align(
+    inputs: RegionInputs, keeper: LeaseKeeper, frozen: dict[tuple[int, int], bytes]
+) -> tuple[dict[str, Pose], dict[str, Any], dict[tuple[int, int], bytes]]:
+    """Align the region's free submaps against the rest, tracking them against the ``frozen`` fields of
+    earlier alignments (serialised state dicts) where a tile has one. Returns the refined poses (map
+    frame), metrics, and the fields trained here (serialised), by tile."""
+    import io
+
+    import torch
+
     from fusion.align import align_region
 
     _torch_threads()
-    result = align_region(inputs.submaps, inputs.tiles, inputs.config, progress=keeper)
-    return result.poses, result.metrics
+    states = {key: torch.load(io.BytesIO(data), weights_only=True) for key, data in frozen.items()}
+    result = align_region(inputs.submaps, inputs.tiles, inputs.config, progress=keeper, frozen=states or None)
+    trained = {}
+    for key, state in result.fields.items():
+        if key not in frozen:
+            buffer = io.BytesIO()
+            torch.save(state, buffer)
+            trained[key] = buffer.getvalue()
+    return result.poses, result.metrics, trained
 
 
 def _run_alignment(
@@ -120,16 +135,19 @@ def _run_alignment(
     with factory() as db:
         inputs = plan_alignment(db, settings, claim.tiles)
     poses: dict[str, Pose] = {}
+    fields: dict[tuple[int, int], str] = {}
     metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free)}
     if inputs.free:  # none: a re-run after the poses were committed; only the hand-over is left
         inputs.submaps = load_submaps(blobs, settings, inputs.rows)
-        log.info("aligning region %s: %d submaps, %d free, job %s", claim.tiles, len(inputs.rows),
-                 len(inputs.free), claim.job_id)
-        poses, align_metrics = _align(inputs, keeper)
+        log.info("aligning region %s: %d submaps, %d free, %d tiles with a field, job %s", claim.tiles,
+                 len(inputs.rows), len(inputs.free), len(inputs.fields), claim.job_id)
+        frozen = {key: blobs.get(sha) for key, sha in inputs.fields.items()}
+        poses, align_metrics, trained = _align(inputs, keeper, frozen)
         metrics.update(align_metrics)
+        fields = {key: blobs.put(data) for key, data in trained.items()}  # durable before rows name them
     if keeper.lost.is_set():
         raise LeaseLost(f"lease of job {claim.job_id} lost")
-    outcome, jobs = results.commit_alignment(factory, claim, inputs, poses, metrics)
+    outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics)
     for job_id in jobs:
         enqueue(job_id, settings, JobKind.reconstruct.value)
     return outcome

@@ -194,6 +194,9 @@ class Tile(Base):
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     last_error: Mapped[str | None] = mapped_column(Text, default=None)
     fused_at: Mapped[datetime | None] = mapped_column(default=None)
+    # the field the tile's last alignment trained (a torch state dict blob): later alignments track new
+    # submaps against it instead of re-training the map
+    align_field_sha256: Mapped[str | None] = mapped_column(String(64), default=None)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
 

@@ -145,15 +145,19 @@ def release_lease(
     return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 
-def hand_over(db: Session, i: int, j: int, *, owner: str, job_id: str, now: datetime) -> bool:
+def hand_over(
+    db: Session, i: int, j: int, *, owner: str, job_id: str, now: datetime, field_sha256: str | None = None
+) -> bool:
     """An alignment finished: the tile goes from ``owner``'s lease to its reconstruct job ``job_id``
-    (→ ``queued``); False if the lease is no longer ours."""
-    return _changed(db.execute(
-        _update(i, j, Tile.lease_owner == owner).values(
-            state=TileState.queued.value, job_id=job_id, lease_owner=None, lease_until=None, progress=0.0,
-            updated_at=now,
-        )
-    ))
+    (→ ``queued``), recording the field the alignment trained there if any; False if the lease is no
+    longer ours."""
+    values: dict[str, Any] = {
+        "state": TileState.queued.value, "job_id": job_id, "lease_owner": None, "lease_until": None,
+        "progress": 0.0, "updated_at": now,
+    }
+    if field_sha256 is not None:
+        values["align_field_sha256"] = field_sha256
+    return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 
 def finish(
