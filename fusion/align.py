@@ -17,7 +17,7 @@ batches): linear in the region's data.
 
 Frames: poses live in the *region frame* (map frame shifted by the region's lower tile corner, for
 float32 precision); each tile's field lives in its own *tile frame* (map frame shifted by the tile's
-lower corner, as ``fuse_tile``), so field states are independent of the region they were trained in.
+lower corner, as ``reconstruct_tile``), so field states are independent of the region they were trained in.
 
 Incremental alignment (``frozen``): previous per-tile field states; submaps with ``free=False`` keep
 their poses. Tiles with a state are loaded and held (no field gradient; only the free submaps'

@@ -110,7 +110,7 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     2. Alignment (``fusion.align.align_region``): every submap of a region free, one pose per submap,
        starting from ``refined`` (a previous fusion) else GPS; the GPS prior anchors to the GPS fix.
        ``refined`` (submap id → map pose) is updated in place with the aligned poses.
-    3. Reconstruction (``fuse_tile``): each tile with every submap held at its aligned pose, in sorted
+    3. Reconstruction (``reconstruct_tile``): each tile with every submap held at its aligned pose, in sorted
        (i, j) order so neighbours reconstructed earlier pin the shared border.
 
     Tiles are processed in sorted order whatever order ``tile_keys`` lists them in, so the result does
@@ -119,7 +119,7 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     submaps only graze it through their GPS uncertainty) is recorded in ``skipped`` (else raised).
     ``align_metrics``: if given, each region's alignment metrics are appended to it."""
     from fusion.align import align_region
-    from fusion.reconstruct import fuse_tile
+    from fusion.reconstruct import reconstruct_tile
 
     refined = {} if refined is None else refined
     keys = sorted({(int(i), int(j)) for i, j in tile_keys})
@@ -160,7 +160,7 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
             progress(ProgressEvent(ev.iteration, ev.total, ev.losses, stage))  # type: ignore[misc]
 
         try:
-            result = fuse_tile(inputs, TileSpec(key[0], key[1], tile_size), config,
+            result = reconstruct_tile(inputs, TileSpec(key[0], key[1], tile_size), config,
                                progress=tile_progress if progress else None, border_pins=pins or None)
         except FusionError as exc:
             if skipped is None:

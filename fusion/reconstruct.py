@@ -21,8 +21,8 @@ from fusion.config import FusionConfig
 from fusion.errors import FusionError
 from fusion.extract import extract_mesh
 from fusion.field import SemanticSDFField
-from fusion.losses import field_losses, gps_prior_loss, odometry_loss, total_loss
-from fusion.poses import PoseSet, odometry_consistent_start, odometry_pairs
+from fusion.losses import field_losses, total_loss
+from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.runtime import resolve_device
 from fusion.sampling import (
     SpaceBoxes,
@@ -32,7 +32,8 @@ from fusion.sampling import (
     sample_surface_pool,
     space_boxes,
 )
-from fusion.types import FusionResult, Pose, ProgressCallback, ProgressEvent, SubmapInput, TileSpec
+from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
+from fusion.types import FusedMesh, FusionResult, ProgressCallback, ProgressEvent, SubmapInput, TileSpec
 
 
 def overlapping(submaps: list[SubmapInput], tile: TileSpec, margin_m: float) -> list[SubmapInput]:
@@ -142,7 +143,7 @@ def active_levels(it: int, config: FusionConfig) -> int:
     return min(config.num_levels, config.lod_start_levels + (extra + 1) * it // span)
 
 
-def fuse_tile(
+def reconstruct_tile(
     submaps: list[SubmapInput],
     tile: TileSpec,
     config: FusionConfig,
@@ -150,7 +151,8 @@ def fuse_tile(
     border_pins: dict | None = None,
     device: str | None = None,
 ) -> FusionResult:
-    """Fuse the submaps touching ``tile`` into a semantic mesh (map frame) and refine free submaps' poses.
+    """Fuse the submaps touching ``tile`` into a semantic mesh (map frame) and refine free submaps'
+    poses (the service holds every pose: its alignment jobs own them).
 
     Raises ``FusionError`` when no submap overlaps the tile (+ margin).
     """
@@ -163,72 +165,14 @@ def fuse_tile(
     allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
     if callable(allocate):
         allocate(field.norm(_posed_pool(problem)))
-    pairs, odom_rel, odom_ist, odom_isr = (t.to(dev) for t in odometry_pairs(problem.submaps))
-    gps_ist = torch.tensor([1 / max(sm.gps_sigma.trans_m, 1e-3) for sm in problem.submaps], dtype=torch.float64, device=dev)
-    gps_isr = torch.tensor([1 / np.radians(max(sm.gps_sigma.rot_deg, 1e-3)) for sm in problem.submaps],
-                           dtype=torch.float64, device=dev)
-    optimizer = torch.optim.AdamW([
-        {"params": list(field.parameters()), "lr": config.lr_field, "weight_decay": config.weight_decay},
-        {"params": [problem.poses.rho], "lr": config.lr_pose_trans, "weight_decay": 0.0},
-        {"params": [problem.poses.phi], "lr": config.lr_pose_rot, "weight_decay": 0.0},
-    ])
-    gamma = config.lr_decay_final ** (1.0 / max(config.iterations, 1))
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma)
-    consensus_iters = {int(f * config.iterations) for f in config.consensus_at} if config.consensus else set()
-    report_every = max(1, config.iterations // 50)
-    evaluated = 0
-    terms_f: dict[str, float] = {}
     t_train = time.perf_counter()
-    for it in range(config.iterations):
-        if it in consensus_iters:
-            update_consensus(problem, config)
-        field.set_active_levels(active_levels(it, config))
-        poses64 = problem.poses()
-        batch = sample_batch(problem.pool, problem.boxes, poses64.float(), problem.lo, problem.hi,
-                             config.surface_samples, config.space_samples, config.sigma_s, gen)
-        terms, n_eval = field_losses(field, batch, config, gen)
-        terms["odom"] = odometry_loss(poses64, pairs, odom_rel, odom_ist, odom_isr).float()
-        terms["gps"] = gps_prior_loss(poses64, problem.init_tile, gps_ist, gps_isr).float()
-        loss = total_loss(terms, config)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if it < config.pose_warmup:
-            problem.poses.rho.grad = None
-            problem.poses.phi.grad = None
-        optimizer.step()
-        scheduler.step()
-        evaluated += n_eval
-        if progress is not None and (it % report_every == 0 or it == config.iterations - 1):
-            terms_f = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(loss.detach())}
-            progress(ProgressEvent(it + 1, config.iterations, terms_f, "train"))
-    terms_f = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(loss.detach())}
+    losses, evaluated = _train(problem, field, config, gen, progress)
     train_s = time.perf_counter() - t_train
-
     t_extract = time.perf_counter()
-    field.eval()
-    field.set_active_levels(config.num_levels)
-    mesh, border, ex_stats = extract_mesh(
-        _sdf_fn(field, problem.origin, config.extract_chunk, dev),
-        _attr_fn(field, problem.origin, config.extract_chunk, dev),
-        tile,
-        (float(problem.lo[2]) + problem.origin[2], float(problem.hi[2]) + problem.origin[2]),
-        config.extract_voxel_m,
-        config.extract_block,
-        config.extract_band,
-        config.c_th,
-        border_pins,
-        face_labels=config.face_labels,
-        step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
-    )
+    mesh, border, ex_stats = _extract(problem, field, tile, config, border_pins, progress, dev)
     extract_s = time.perf_counter() - t_extract
-
-    with torch.no_grad():
-        final = problem.poses().cpu().numpy()
-    to_map = np.eye(4)
-    to_map[:3, 3] = problem.origin
-    poses = {sm.id: Pose.from_matrix(to_map @ final[k]) for k, sm in enumerate(problem.submaps) if sm.free}
     metrics = {
-        "losses": terms_f,
+        "losses": losses,
         "iterations": config.iterations,
         "duration_s": time.perf_counter() - t_start,
         "duration_train_s": train_s,
@@ -241,7 +185,57 @@ def fuse_tile(
         "mean_conf_target": float(problem.pool.conf_target.mean()),
         "extract": ex_stats,
     }
+    poses = map_poses(problem.poses, problem.origin, problem.submaps)
     return FusionResult(mesh, poses, metrics, config.to_dict(), border)
+
+
+def _train(
+    problem: TileProblem, field: SemanticSDFField, config: FusionConfig, gen: torch.Generator,
+    progress: ProgressCallback | None,
+) -> tuple[dict[str, float], int]:
+    """The paper's loop on one tile: LOD → posed batch → field + pose terms → step. Returns the last
+    losses and the number of field evaluations."""
+    terms_of_poses = PoseTerms.of(problem.submaps, problem.lo.device)
+    optimiser = Optimiser(list(field.parameters()), problem.poses, config, config.iterations, config.pose_warmup)
+    consensus = consensus_iterations(config, config.iterations)
+    report = Reporter(progress, config.iterations, "train")
+    evaluated = 0
+    for it in range(config.iterations):
+        if it in consensus:
+            update_consensus(problem, config)
+        field.set_active_levels(active_levels(it, config))
+        poses64 = problem.poses()
+        batch = sample_batch(problem.pool, problem.boxes, poses64.float(), problem.lo, problem.hi,
+                             config.surface_samples, config.space_samples, config.sigma_s, gen)
+        terms, n_eval = field_losses(field, batch, config, gen)
+        terms |= terms_of_poses.losses(poses64, problem.init_tile)
+        loss = total_loss(terms, config)
+        optimiser.step(it, loss)
+        evaluated += n_eval
+        report(it, terms, loss)
+    return loss_values(terms, loss), evaluated
+
+
+def _extract(
+    problem: TileProblem, field: SemanticSDFField, tile: TileSpec, config: FusionConfig, border_pins: dict | None,
+    progress: ProgressCallback | None, dev: torch.device,
+) -> tuple[FusedMesh, dict[str, Any], dict[str, Any]]:
+    """The tile's mesh on the global lattice at full LOD (map frame), its border samples, statistics."""
+    field.eval()
+    field.set_active_levels(config.num_levels)
+    return extract_mesh(
+        _sdf_fn(field, problem.origin, config.extract_chunk, dev),
+        _attr_fn(field, problem.origin, config.extract_chunk, dev),
+        tile,
+        (float(problem.lo[2]) + problem.origin[2], float(problem.hi[2]) + problem.origin[2]),
+        config.extract_voxel_m,
+        config.extract_block,
+        config.extract_band,
+        config.c_th,
+        border_pins,
+        face_labels=config.face_labels,
+        step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
+    )
 
 
 def _posed_pool(problem: TileProblem) -> torch.Tensor:

@@ -34,7 +34,7 @@ def fusion_config(settings: Settings) -> FusionConfig:
 
 @dataclass
 class TileInputs:
-    """Everything ``fuse_tile`` needs for one tile, plus the fingerprint of it.
+    """Everything ``reconstruct_tile`` needs for one tile, plus the fingerprint of it.
 
     ``submaps`` is empty until :func:`load_meshes` read the mesh blobs (the fingerprint needs none).
     """

@@ -97,10 +97,10 @@ def _torch_threads() -> None:
 
 def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
     """Reconstruct one tile with every pose held (torch: imported in the worker process only)."""
-    from fusion.reconstruct import fuse_tile
+    from fusion.reconstruct import reconstruct_tile
 
     _torch_threads()
-    return fuse_tile(
+    return reconstruct_tile(
         inputs.submaps, inputs.tile, inputs.config, progress=keeper, border_pins=inputs.border_pins or None
     )
 

@@ -44,7 +44,7 @@ def test_align_region_reduces_pose_error_across_the_border() -> None:
     after = _relative(res.poses)
     assert set(res.poses) == {"a", "b"}
     assert after[0] < 0.5 * before[0], (before, after)
-    assert after[1] < before[1] + 0.3, (before, after)  # yaw: fuse_tile does not fix it in 80 steps here either
+    assert after[1] < before[1] + 0.3, (before, after)  # yaw: reconstruct_tile does not fix it in 80 steps here either
     m = res.metrics
     assert m["num_tiles"] == 2 and m["num_submaps"] == 2 and m["num_free"] == 2
     assert m["iterations"] == 2 * 40 and not m["incremental"]

@@ -50,7 +50,7 @@ def multi_tile_uploads(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.mark.timeout(300)
 def test_fuse_directory_writes_tiles_and_poses(uploads: Path, tmp_path: Path) -> None:
-    """End to end with the real fuse_tile and a tiny config (a few seconds on an idle 2-core CPU)."""
+    """End to end with the real reconstruct_tile and a tiny config (a few seconds on an idle 2-core CPU)."""
     from fusion.meshio import read_fused_ply
     from fusion.offline import fuse_directory
 
@@ -100,7 +100,7 @@ def test_region_aligned_then_tiles_reconstructed_with_fixed_poses(
     runs = []
     for order in (keys, list(reversed(keys)), keys[1::2] + keys[0::2]):
         calls: list = []
-        monkeypatch.setattr(fusion.reconstruct, "fuse_tile", _fake_fuse_tile(calls))
+        monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", _fake_fuse_tile(calls))
         refined: dict = {}
         align: list = []
         fuse_tiles(submaps, order, cfg, TILE, refined=refined, align_metrics=align)
@@ -131,7 +131,7 @@ def test_fixed_poses_skip_alignment(multi_tile_uploads: Path, monkeypatch: pytes
         raise AssertionError("alignment must not run with fixed poses")
 
     calls: list = []
-    monkeypatch.setattr(fusion.reconstruct, "fuse_tile", _fake_fuse_tile(calls))
+    monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", _fake_fuse_tile(calls))
     monkeypatch.setattr(fusion.align, "align_region", no_align)
     submaps = load_directory(multi_tile_uploads, TILE)
     fixed = {s.input.id: s.pose_gps for s in submaps}

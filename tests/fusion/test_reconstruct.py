@@ -7,7 +7,7 @@ import pytest
 
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
-from fusion.reconstruct import fuse_tile
+from fusion.reconstruct import reconstruct_tile
 from fusion.types import Pose, ProgressEvent, TileSpec
 from tests.scene import tiny_config, two_sessions
 
@@ -23,7 +23,7 @@ def test_recovers_offset_between_two_sessions() -> None:
     subs, _ = two_sessions(offset=(0.5, -0.4, 0.1), yaw_deg=1.0)
     before = _relative_offset({s.id: s.pose_init for s in subs})
     events: list[ProgressEvent] = []
-    res = fuse_tile(subs, TILE, tiny_config(), progress=events.append)
+    res = reconstruct_tile(subs, TILE, tiny_config(), progress=events.append)
     after = _relative_offset(res.poses)
     assert after < 0.35 * before, (before, after)
     assert {e.stage for e in events} == {"train", "extract"}
@@ -44,25 +44,25 @@ def test_recovers_offset_between_two_sessions() -> None:
 def test_fixed_submaps_hold_and_are_not_returned() -> None:
     subs, _ = two_sessions()
     subs[0].free = False
-    res = fuse_tile(subs, TILE, tiny_config(iterations=10))
+    res = reconstruct_tile(subs, TILE, tiny_config(iterations=10))
     assert set(res.poses) == {"b"}
 
 
 def test_deterministic_under_seed() -> None:
     subs, _ = two_sessions()
     cfg = tiny_config(iterations=12)
-    r1 = fuse_tile(subs, TILE, cfg)
-    r2 = fuse_tile(subs, TILE, cfg)
+    r1 = reconstruct_tile(subs, TILE, cfg)
+    r2 = reconstruct_tile(subs, TILE, cfg)
     assert np.array_equal(r1.poses["b"].t, r2.poses["b"].t)
     assert np.array_equal(r1.mesh.vertices, r2.mesh.vertices)
-    r3 = fuse_tile(subs, TILE, cfg.with_(seed=1))
+    r3 = reconstruct_tile(subs, TILE, cfg.with_(seed=1))
     assert not np.array_equal(r1.poses["b"].t, r3.poses["b"].t)
 
 
 def test_empty_tile_raises() -> None:
     subs, _ = two_sessions()
     with pytest.raises(FusionError, match="no submap overlaps tile"):
-        fuse_tile(subs, TileSpec(10, 10, 16.0), tiny_config())
+        reconstruct_tile(subs, TileSpec(10, 10, 16.0), tiny_config())
 
 
 def test_config_round_trip_and_presets() -> None:
