@@ -155,3 +155,15 @@ def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, interval
             return last
         time.sleep(interval_s)
     raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}; last value {last!r}")
+
+
+def tile_fused(client: Any, i: int, j: int, version: int) -> Callable[[], dict[str, Any] | None]:
+    """A ``wait_for`` predicate: tile (i, j) is ``fused`` at ``version`` or later (its region's alignment
+    and then its reconstruction ran); a ``failed`` tile fails the wait."""
+
+    def fused() -> dict[str, Any] | None:
+        body: dict[str, Any] = client.get(f"/v1/tiles/{i}/{j}").json()
+        assert body["state"] != "failed", body
+        return body if body["state"] == "fused" and body["version"] >= version else None
+
+    return fused

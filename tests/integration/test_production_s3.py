@@ -102,6 +102,7 @@ def test_ingest_fuse_download_with_s3_blobs(s3_endpoint: str, tmp_path: Path) ->
     import httpx
 
     from tests.production_support import deployment, post_submap, small_mesh, submap_meta, wait_until
+    from tests.worker_support import tile_fused
 
     bucket_url = "s3://fleetmap-e2e/blobs"
     store = S3BlobStore(bucket_url, endpoint_url=s3_endpoint)
@@ -121,17 +122,8 @@ def test_ingest_fuse_download_with_s3_blobs(s3_endpoint: str, tmp_path: Path) ->
                 assert (tmp_path / "blobs").exists() is False
                 accepted = client.post("/v1/tiles/0/0/fuse")
                 assert accepted.status_code == 202, accepted.text
-                job_id = accepted.json()["job_id"]
-                job = wait_until(
-                    lambda: (
-                        (body := client.get(f"/v1/jobs/{job_id}").json())["state"] in ("succeeded", "failed")
-                        and body
-                    ),
-                    240,
-                    "the fusion job",
-                    interval_s=0.5,
-                )
-                assert job["state"] == "succeeded", job
+                assert client.get(f"/v1/jobs/{accepted.json()['job_id']}").json()["kind"] == "align"
+                wait_until(tile_fused(client, 0, 0, 1), 240, "tile (0, 0) aligned and fused", interval_s=0.5)
                 ply = client.get("/v1/tiles/0/0/mesh")
                 assert ply.status_code == 200 and ply.content.startswith(b"ply")
                 etag = ply.headers["etag"]

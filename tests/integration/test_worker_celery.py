@@ -22,7 +22,7 @@ import pytest
 
 from service import schedule as scheduler
 from service.store.models import FusionJob
-from tests.worker_support import api, make_settings, session_factory, upload, wait_for
+from tests.worker_support import api, make_settings, session_factory, tile_fused, upload, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
@@ -116,9 +116,9 @@ def test_celery_worker_fuses_jobs_sent_by_task_name(celery_env: dict[str, Any]) 
     accepted = client.post("/v1/tiles/0/0/fuse")
     assert accepted.status_code == 202
     job = _wait_job(celery_env, accepted.json()["job_id"])
-    assert job["metrics"]["submaps"] == 2
-    tile = client.get("/v1/tiles/0/0").json()
-    assert (tile["state"], tile["version"]) == ("fused", 1)
+    assert job["kind"] == "align" and job["metrics"]["submaps"] == 2
+    tile = wait_for(tile_fused(client, 0, 0, 1), 300, "tile (0, 0) reconstructed", interval_s=0.5)
+    assert tile["version"] == 1 and client.get(f"/v1/jobs/{tile['job_id']}").json()["kind"] == "reconstruct"
     assert client.get("/v1/tiles/0/0/mesh", params={"format": "glb"}).status_code == 200
 
     # A job whose broker message was lost is sent again by the sweeper and then fused.
@@ -126,7 +126,7 @@ def test_celery_worker_fuses_jobs_sent_by_task_name(celery_env: dict[str, Any]) 
     factory = session_factory(client.app)
     settings = celery_env["settings"]
     original = scheduler.enqueue
-    scheduler.enqueue = lambda job_id, settings=None: False  # type: ignore[assignment]
+    scheduler.enqueue = lambda *_: False  # type: ignore[assignment]
     try:
         with factory() as db:
             lost = scheduler.request_fusion(db, 0, 0, settings=settings)
@@ -138,5 +138,5 @@ def test_celery_worker_fuses_jobs_sent_by_task_name(celery_env: dict[str, Any]) 
         assert scheduler.tick(db, later, settings).requeued_jobs == [lost.id]
     job = _wait_job(celery_env, lost.id)
     assert job["metrics"]["submaps"] == 3
-    tile = client.get("/v1/tiles/0/0").json()
-    assert (tile["state"], tile["version"]) == ("fused", 2)
+    tile = wait_for(tile_fused(client, 0, 0, 2), 300, "tile (0, 0) fused again", interval_s=0.5)
+    assert tile["version"] == 2
