@@ -22,8 +22,8 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from fusion.errors import FusionLibraryError
-from fusion.types import FusionResult, Pose
+from fusion.errors import FusionError, FusionLibraryError
+from fusion.types import FusedMesh, FusionResult, Pose
 from service.broker import enqueue
 from service.settings import Settings, get_settings
 from service.store.blobs import BlobStore, blob_store_from_url
@@ -173,7 +173,14 @@ def _run_reconstruction(
     if unchanged:
         return results.commit_reused(factory, claim, inputs)
     log.info("fusing tile (%d, %d): %d submaps, job %s", claim.i, claim.j, len(inputs.rows), claim.job_id)
-    result = _fuse(inputs, keeper)
+    try:
+        result = _fuse(inputs, keeper)
+    except FusionError as exc:
+        if exc.code != "empty_tile":
+            raise
+        # The tile's submaps only graze it (their GPS uncertainty reaches it, their surface does not):
+        # it is fused, with nothing in it, rather than failed.
+        result = FusionResult(FusedMesh.empty(), {}, {"empty": exc.message}, inputs.config.to_dict(), {})
     if keeper.lost.is_set():
         raise LeaseLost(f"lease of tile ({claim.i}, {claim.j}) lost")
     blob_ids = results.store_blobs(blobs, result)

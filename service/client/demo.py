@@ -7,8 +7,9 @@
 4. shows the tiles' states while they fuse, downloads the fused meshes (PLY + GLB) and refined poses,
 5. prints an evaluation against the simulator's ground truth (``fusion.eval.metrics``).
 
-By default it waits for the tiles that own submaps (where the vehicles drove); ``--all-tiles`` also
-waits for the fringe tiles. Leftover jobs resume with ``FLEETMAP_DATA_DIR=OUT/data fleetmap serve``.
+It waits for every tile: the fleet's region is aligned once, then each tile is reconstructed (a tile
+its submaps only graze through their GPS uncertainty is fused empty). Leftover jobs resume with
+``FLEETMAP_DATA_DIR=OUT/data fleetmap serve``.
 This process never imports torch: fusion runs in the server's worker child.
 """
 
@@ -182,7 +183,6 @@ def main(argv: list[str] | None = None) -> int:
         "--preset", default="cpu", help="fusion preset: cpu, paper (GPU) or tiny (smoke test)"
     )
     parser.add_argument("--debounce", type=float, default=2.0, help="seconds of quiet before a tile is fused")
-    parser.add_argument("--all-tiles", action="store_true", help="also wait for tiles that own no submap")
     parser.add_argument("--timeout", type=float, default=1800.0, help="give up after this many seconds")
     args = parser.parse_args(argv)
 
@@ -204,12 +204,8 @@ def main(argv: list[str] | None = None) -> int:
             ids = upload_all(client, out / "sim", records)
             tiles = all_tiles(client)
             tile_size = float(client.get("/v1/capabilities").json()["tile_size_m"])
-            homes = {
-                tuple(client.get(f"/v1/submaps/{sid}").json().get("home_tile") or ()) for sid in ids.values()
-            }
-            homes.discard(())
-            wanted = {(t["i"], t["j"]) for t in tiles} if args.all_tiles or not homes else homes
-            print(f"4/5 fusing: waiting for {len(wanted)} of {len(tiles)} tiles ...", flush=True)
+            wanted = {(t["i"], t["j"]) for t in tiles}  # alignment, then every tile's reconstruction
+            print(f"4/5 aligning and fusing {len(wanted)} tiles ...", flush=True)
             tiles = wait_for_tiles(client, wanted, args.timeout)
             plys = download(client, tiles, out / "meshes")
             sessions = sorted({r.session_id for r in records})
