@@ -380,3 +380,14 @@ def test_an_alignment_whose_worker_died_is_run_again_and_loses_nothing(
     align_then_reconstruct(env, (0, 0), (1, 0))
     assert env.get(f"/v1/submaps/{created['id']}").json()["pose_refined"]["t"] == pytest.approx([50.1, 10.0, 0.0])
     assert env.get(f"/v1/jobs/{job_id}").json()["state"] == "succeeded"
+
+
+def test_a_tile_with_no_surface_is_fused_empty(env: Any, fake: FakeFusion, align: FakeAlign) -> None:
+    upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])
+    tick(env, 31)
+    assert run(env, current_job(env)) == "succeeded"
+    fake.error = FusionError("the submaps near tile (0, 0) have no surface inside it", code="empty_tile")
+    assert run(env, current_job(env)) == "succeeded"
+    body = env.get("/v1/tiles/0/0").json()
+    assert (body["state"], body["version"]) == ("fused", 1)
+    assert env.get("/v1/tiles/0/0/mesh").status_code == 200
