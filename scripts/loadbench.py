@@ -335,6 +335,9 @@ def report_workers(ports: list[int]) -> None:
             for sample in family.samples:
                 if sample.name == "fleetmap_worker_job_duration_seconds_count":
                     jobs[f"{sample.labels['kind']}/{sample.labels['outcome']}"] += int(sample.value)
+                    sums[f"n {sample.labels['kind']}"] += sample.value
+                elif sample.name == "fleetmap_worker_job_duration_seconds_sum":
+                    sums[f"s {sample.labels['kind']}"] += sample.value
                 elif sample.name in {
                     "fleetmap_worker_upload_to_fused_seconds_count", "fleetmap_worker_upload_to_fused_seconds_sum",
                     "fleetmap_worker_queue_wait_seconds_count", "fleetmap_worker_queue_wait_seconds_sum",
@@ -344,9 +347,13 @@ def report_workers(ports: list[int]) -> None:
         wait_n = sums["fleetmap_worker_queue_wait_seconds_count"]
         fused = sums["fleetmap_worker_upload_to_fused_seconds_sum"] / fused_n if fused_n else float("nan")
         wait = sums["fleetmap_worker_queue_wait_seconds_sum"] / wait_n if wait_n else float("nan")
+        durations = ", ".join(
+            f"{kind} {sums[f's {kind}'] / sums[f'n {kind}']:.1f} s"
+            for kind in ("align", "reconstruct") if sums[f"n {kind}"]
+        )
         print(
-            f"worker {k} metrics (:{port}): jobs {dict(sorted(jobs.items()))}, mean queue wait {wait:.1f} s, "
-            f"upload -> fused n={int(fused_n)} mean {fused:.1f} s",
+            f"worker {k} metrics (:{port}): jobs {dict(sorted(jobs.items()))}, mean duration {durations or '-'}, "
+            f"mean queue wait {wait:.1f} s, upload -> fused n={int(fused_n)} mean {fused:.1f} s",
             flush=True,
         )
 
