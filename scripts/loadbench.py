@@ -10,10 +10,25 @@ targets a running deployment instead (``--token``: an operator token).
 Phases (each bounded in count and time):
 1. upload: ``--clients`` simulated vehicles (httpx, asyncio) POST real synthetic submaps of about
    ``--submap-kb`` KB until ``--count`` are sent or ``--duration`` seconds pass;
-2. fusion: an operator triggers ``POST /v1/tiles/{i}/{j}/fuse`` on the busiest tile, and readers poll
+2. upload → map (from the start of phase 1 until every stored submap is in the map, or
+   ``--fusion-seconds`` after phase 1 ended): the automatic scheduler and ``--fusion-workers`` workers
+   fuse the uploaded tiles while an operator client polls ``GET /v1/tiles`` every ``--poll-seconds``;
+3. fusion: an operator triggers ``POST /v1/tiles/{i}/{j}/fuse`` on the busiest tile, and readers poll
    ``GET /v1/tiles`` while the job is queued/running (at most ``--fusion-seconds``).
 
-Prints submaps/s, MB/s, latency percentiles, errors by status, and GET /v1/tiles percentiles.
+Upload → map latency of a submap S (uploaded with a ``201``; retries answered ``200`` are not counted):
+``fused_at(T) - t201(S)``, where ``t201(S)`` is the client's wall-clock time when the 201 response
+arrived and ``T`` is the first of S's tiles that a poll *started after* t201(S) finds in state ``fused``,
+``fused_at(T)`` being the commit time of that tile version (server wall clock: the same host on
+loopback). A tile is ``fused`` only when its latest version used every submap it holds, so that version
+contains S; it is the first version containing S unless the tile became ``dirty`` and was fused again
+between two polls (then the figure is an upper bound). It includes the scheduler's debounce
+(``--fuse-debounce``, default the deployment's ``FLEETMAP_FUSE_DEBOUNCE_S``), the queue waits, the
+alignment and the tile reconstruction. Submaps not in the map when the phase ends are counted apart.
+
+Prints submaps/s, MB/s, latency percentiles, errors by status, upload → map p50/p90/p99, and GET
+/v1/tiles percentiles. A locally started deployment's workers serve their own metrics
+(``--metrics-port``); the script prints each worker's job counts and mean upload → fused from them.
 
     .venv/bin/python scripts/loadbench.py --clients 16 --count 4000 --duration 30
 """
@@ -36,7 +51,9 @@ import uuid
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -154,10 +171,26 @@ def _ok(status: str) -> bool:
 # --------------------------------------------------------------------------------------- phases
 
 
+@dataclass
+class Stored:
+    """A submap the server stored (201): its tiles and the client's wall-clock time of the response."""
+
+    id: str
+    tiles: list[tuple[int, int]]
+    at: float  # time.time() when the 201 arrived
+    in_map_s: float | None = None  # upload → map latency, once known
+
+
 async def upload_phase(
-    url: str, tokens: dict[str, str], queues: list[list[Upload]], duration_s: float, timeout_s: float
+    url: str,
+    tokens: dict[str, str],
+    queues: list[list[Upload]],
+    duration_s: float,
+    timeout_s: float,
+    stored: list[Stored] | None = None,
 ) -> tuple[Samples, float, Counter[tuple[int, int]]]:
-    """Every vehicle uploads its queue in order; returns samples, elapsed seconds and tile hit counts."""
+    """Every vehicle uploads its queue in order; returns samples, elapsed seconds and tile hit counts.
+    Every 201 is appended to ``stored``."""
     samples = Samples()
     tiles: Counter[tuple[int, int]] = Counter()
     deadline = time.monotonic() + duration_s
@@ -177,14 +210,152 @@ async def upload_phase(
                     status = str(response.status_code)
                 except httpx.HTTPError as exc:
                     status = type(exc).__name__
+                arrived = time.time()
                 samples.add(status, time.perf_counter() - start, len(item.mesh))
                 if status in {"200", "201"}:
-                    for i, j in response.json()["tiles"]:
+                    body = response.json()
+                    for i, j in body["tiles"]:
                         tiles[(i, j)] += 1
+                    if status == "201" and stored is not None:
+                        stored.append(Stored(body["id"], [(i, j) for i, j in body["tiles"]], arrived))
 
         began = time.perf_counter()
         await asyncio.gather(*(vehicle(q) for q in queues))
         return samples, time.perf_counter() - began, tiles
+
+
+def _epoch(stamp: str) -> float:
+    """An API timestamp (ISO 8601, UTC) as seconds since the epoch."""
+    parsed = datetime.fromisoformat(stamp)
+    return (parsed if parsed.tzinfo else parsed.replace(tzinfo=UTC)).timestamp()
+
+
+async def _all_tiles(client: httpx.AsyncClient) -> list[dict[str, Any]]:
+    items: list[dict[str, Any]] = []
+    cursor: str | None = None
+    for _ in range(1000):  # at most 1000 pages of 1000 tiles
+        params: dict[str, str | int] = {"limit": 1000, **({"cursor": cursor} if cursor else {})}
+        response = await client.get("/v1/tiles", params=params)
+        response.raise_for_status()
+        page = response.json()
+        items += page["items"]
+        cursor = page["next_cursor"]
+        if not cursor:
+            break
+    return items
+
+
+async def map_latency_phase(
+    url: str, operator: str, stored: list[Stored], uploading: asyncio.Event, max_s: float, poll_s: float,
+    timeout_s: float,
+) -> int:
+    """Poll ``GET /v1/tiles`` until every submap in ``stored`` is in the map (see the module docstring),
+    or ``max_s`` after ``uploading`` was cleared. Sets ``Stored.in_map_s``; returns the number of polls."""
+    headers = {"Authorization": f"Bearer {operator}"}
+    polls = 0
+    deadline = float("inf")
+    async with httpx.AsyncClient(base_url=url, timeout=timeout_s, headers=headers) as client:
+        while time.monotonic() < deadline:
+            if not uploading.is_set() and deadline == float("inf"):
+                deadline = time.monotonic() + max_s
+            began = time.time()
+            pending = [s for s in stored if s.in_map_s is None and s.at < began]
+            try:
+                tiles = await _all_tiles(client)
+            except httpx.HTTPError as exc:
+                print(f"map poll failed: {exc}", flush=True)
+                await asyncio.sleep(poll_s)
+                continue
+            polls += 1
+            fused = {
+                (int(t["i"]), int(t["j"])): _epoch(str(t["fused_at"]))
+                for t in tiles
+                if t["state"] == "fused" and t["fused_at"]
+            }
+            for submap in pending:
+                times = [fused[t] for t in submap.tiles if t in fused]
+                if times:
+                    submap.in_map_s = max(0.0, min(times) - submap.at)
+            if not uploading.is_set() and all(s.in_map_s is not None for s in stored):
+                break
+            await asyncio.sleep(poll_s)
+    return polls
+
+
+async def upload_and_map(
+    url: str, operator: str, tokens: dict[str, str], queues: list[list[Upload]], args: argparse.Namespace
+) -> tuple[Samples, float, Counter[tuple[int, int]], list[Stored], int]:
+    """Phases 1 and 2 together: the map poller runs while the vehicles upload."""
+    stored: list[Stored] = []
+    uploading = asyncio.Event()
+    uploading.set()
+
+    async def uploads() -> tuple[Samples, float, Counter[tuple[int, int]]]:
+        try:
+            return await upload_phase(url, tokens, queues, args.duration, args.timeout, stored)
+        finally:
+            uploading.clear()
+
+    if args.no_map_latency:
+        samples, elapsed, tiles = await uploads()
+        return samples, elapsed, tiles, stored, 0
+    (samples, elapsed, tiles), polls = await asyncio.gather(
+        uploads(),
+        map_latency_phase(url, operator, stored, uploading, args.fusion_seconds, args.poll_seconds, args.timeout),
+    )
+    return samples, elapsed, tiles, stored, polls
+
+
+def report_map_latency(stored: list[Stored], polls: int, max_s: float) -> None:
+    """Upload → map percentiles (seconds) over the submaps that made it; the rest counted apart."""
+    done = [s.in_map_s for s in stored if s.in_map_s is not None]
+    line = (
+        f"upload -> map: stored={len(stored)} in_map={len(done)} "
+        f"not_in_map_{max_s:.0f}s_after_uploads={len(stored) - len(done)} polls={polls}"
+    )
+    if done:
+        p50, p90, p99, top = np.percentile(done, [50, 90, 99, 100])
+        line += f" | p50 {p50:.1f} s, p90 {p90:.1f} s, p99 {p99:.1f} s, max {top:.1f} s"
+    print(line, flush=True)
+
+
+def report_workers(ports: list[int]) -> None:
+    """Each local worker's own metrics: jobs by kind and outcome, mean queue wait, mean upload → fused."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    for k, port in enumerate(ports):
+        try:
+            text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+        except httpx.HTTPError as exc:
+            print(f"worker {k} metrics: unreachable ({exc})", flush=True)
+            continue
+        jobs: Counter[str] = Counter()
+        sums: Counter[str] = Counter()
+        for family in text_string_to_metric_families(text):
+            for sample in family.samples:
+                if sample.name == "fleetmap_worker_job_duration_seconds_count":
+                    jobs[f"{sample.labels['kind']}/{sample.labels['outcome']}"] += int(sample.value)
+                    sums[f"n {sample.labels['kind']}"] += sample.value
+                elif sample.name == "fleetmap_worker_job_duration_seconds_sum":
+                    sums[f"s {sample.labels['kind']}"] += sample.value
+                elif sample.name in {
+                    "fleetmap_worker_upload_to_fused_seconds_count", "fleetmap_worker_upload_to_fused_seconds_sum",
+                    "fleetmap_worker_queue_wait_seconds_count", "fleetmap_worker_queue_wait_seconds_sum",
+                }:
+                    sums[sample.name] += sample.value
+        fused_n = sums["fleetmap_worker_upload_to_fused_seconds_count"]
+        wait_n = sums["fleetmap_worker_queue_wait_seconds_count"]
+        fused = sums["fleetmap_worker_upload_to_fused_seconds_sum"] / fused_n if fused_n else float("nan")
+        wait = sums["fleetmap_worker_queue_wait_seconds_sum"] / wait_n if wait_n else float("nan")
+        durations = ", ".join(
+            f"{kind} {sums[f's {kind}'] / sums[f'n {kind}']:.1f} s"
+            for kind in ("align", "reconstruct") if sums[f"n {kind}"]
+        )
+        print(
+            f"worker {k} metrics (:{port}): jobs {dict(sorted(jobs.items()))}, mean duration {durations or '-'}, "
+            f"mean queue wait {wait:.1f} s, upload -> fused n={int(fused_n)} mean {fused:.1f} s",
+            flush=True,
+        )
 
 
 async def fusion_phase(
@@ -270,6 +441,13 @@ def local_deployment(
         FLEETMAP_AUTH="on",
         FLEETMAP_LOG_LEVEL="WARNING",
     )
+    if args.fuse_debounce is not None:
+        env.update(
+            FLEETMAP_FUSE_DEBOUNCE_S=str(args.fuse_debounce),
+            FLEETMAP_SCHEDULER_INTERVAL_S=str(min(5.0, max(0.5, args.fuse_debounce / 2))),
+        )
+    if args.fusion_preset:
+        env["FLEETMAP_FUSION_PRESET"] = args.fusion_preset
     worker_env = dict(env, FLEETMAP_TORCH_THREADS=str(args.torch_threads))
     try:
         subprocess.run(_fleetmap("db", "upgrade"), cwd=REPO, env=env, check=True, capture_output=True)
@@ -292,9 +470,11 @@ def local_deployment(
         )
         for k in range(args.fusion_workers):
             wlog = open(workdir / f"worker{k}.log", "ab")  # noqa: SIM115
+            metrics_port = _free_port()
+            args.worker_metrics_ports.append(metrics_port)
             procs.append(
                 subprocess.Popen(
-                    _fleetmap("worker", "--concurrency", "1"),
+                    _fleetmap("worker", "--concurrency", "1", "--metrics-port", str(metrics_port)),
                     cwd=REPO,
                     env=worker_env,
                     stdout=wlog,
@@ -376,6 +556,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--api-workers", type=int, default=2, help="uvicorn worker processes")
     parser.add_argument("--fusion-workers", type=int, default=1, help="`fleetmap worker` processes")
     parser.add_argument(
+        "--fusion-preset", default=None, help="FLEETMAP_FUSION_PRESET of the local deployment (cpu, paper, tiny)"
+    )
+    parser.add_argument(
+        "--fuse-debounce",
+        type=float,
+        default=None,
+        help="FLEETMAP_FUSE_DEBOUNCE_S of the local deployment (default: the deployment's, 30 s)",
+    )
+    parser.add_argument("--poll-seconds", type=float, default=1.0, help="upload -> map poll interval")
+    parser.add_argument("--no-map-latency", action="store_true", help="skip the upload -> map measurement")
+    parser.add_argument(
         "--torch-threads",
         type=int,
         default=1,
@@ -429,6 +620,7 @@ def report_cpu(before: dict[str, float], after: dict[str, float], samples: Sampl
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.worker_metrics_ports = []
     if args.url and not args.token:
         parser.error("--url needs --token (an operator token)")
     print(
@@ -444,17 +636,20 @@ def main(argv: list[str] | None = None) -> int:
 
     with deployment as (url, operator, tokens, api_pid):
         cpu_before = cpu_snapshot(api_pid)
-        samples, elapsed, tiles = asyncio.run(upload_phase(url, tokens, queues, args.duration, args.timeout))
+        samples, elapsed, tiles, stored, polls = asyncio.run(upload_and_map(url, operator, tokens, queues, args))
         report("POST /v1/submaps", samples, elapsed)
         report_cpu(cpu_before, cpu_snapshot(api_pid), samples, elapsed)
+        if not args.no_map_latency:
+            report_map_latency(stored, polls, args.fusion_seconds)
         if not args.no_fusion and tiles:
             tile = tiles.most_common(1)[0][0]
-            reads, polls, state = asyncio.run(
+            reads, job_polls, state = asyncio.run(
                 fusion_phase(url, operator, tile, args.readers, args.fusion_seconds, args.timeout)
             )
             print(f"fusion of tile {tile}: job state at the end of the phase: {state}", flush=True)
             report("GET /v1/tiles during fusion", reads)
-            report("GET /v1/jobs/{id} during fusion", polls)
+            report("GET /v1/jobs/{id} during fusion", job_polls)
+        report_workers(args.worker_metrics_ports)
     errors = sum(c for s, c in samples.statuses.items() if not _ok(s))
     return 0 if errors == 0 else 1
 

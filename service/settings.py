@@ -64,6 +64,13 @@ class Settings(BaseSettings):
         description="torch intra-op threads of a fusion worker process (0: torch's default, every core); "
         "set 1-2 where the worker shares the host with the API and the database",
     )
+    worker_metrics_port: int = Field(
+        default=0,
+        ge=0,
+        le=65535,
+        description="Port of a fusion worker's own Prometheus exporter (GET /metrics); 0: off. The "
+        "embedded worker child uses it too",
+    )
     log_level: str = "INFO"
     log_json: bool = False
 

@@ -13,10 +13,11 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from celery.signals import worker_process_init
+from celery.signals import worker_process_init, worker_process_shutdown
 
 from service.broker import make_celery
 from service.settings import get_settings
+from worker import metrics
 
 # Environment variable listing the GPUs one worker host may use, e.g. "0,1": pool child k gets GPU k mod n.
 GPU_DEVICES_ENV = "FLEETMAP_GPU_DEVICES"
@@ -33,7 +34,13 @@ def _pin_gpu(**_: Any) -> None:
     os.environ["CUDA_VISIBLE_DEVICES"] = devices[index % len(devices)]
 
 
+def _metrics_process_exited(**_: Any) -> None:
+    """A pool child exits: its live gauges leave the worker's multiprocess metrics (if enabled)."""
+    metrics.process_exited()
+
+
 worker_process_init.connect(_pin_gpu, weak=False)
+worker_process_shutdown.connect(_metrics_process_exited, weak=False)
 
 app = make_celery(get_settings())
 app.conf.include = ["worker.tasks"]

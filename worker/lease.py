@@ -41,6 +41,7 @@ class Claim:
     generation: int  # the (first) tile's dirty_generation when the lease was taken
     started_at: datetime
     lease_s: float
+    queued_since: datetime | None = None  # the job's enqueued_at (else created_at) when it was claimed
 
     @property
     def i(self) -> int:
@@ -61,6 +62,7 @@ def claim_job(db: Session, job_id: str, owner: str, settings: Settings) -> Claim
         log.info("fusion job %s is already %s; nothing to do", job_id, job.state)
         return None
     now = utcnow()
+    queued_since = job.enqueued_at or job.created_at
     keys = [(int(i), int(j)) for i, j in (job.tiles or [[job.tile_i, job.tile_j]])]
     rows = [db.get(Tile, key) for key in keys]
     if any(tile is None or tile.job_id != job_id for tile in rows):
@@ -79,7 +81,7 @@ def claim_job(db: Session, job_id: str, owner: str, settings: Settings) -> Claim
     job.state, job.progress, job.generation = JobState.running.value, 0.0, first.dirty_generation
     job.started_at = job.started_at or now
     job.attempts += 1
-    claim = Claim(job_id, job.kind, keys, owner, first.dirty_generation, now, settings.lease_s)
+    claim = Claim(job_id, job.kind, keys, owner, first.dirty_generation, now, settings.lease_s, queued_since)
     db.commit()
     return claim
 

@@ -28,8 +28,8 @@ from service.broker import enqueue
 from service.settings import Settings, get_settings
 from service.store.blobs import BlobStore, blob_store_from_url
 from service.store.db import engine_from_settings, make_sessionmaker
-from service.store.models import JobKind, TileVersion
-from worker import results
+from service.store.models import JobKind, TileVersion, utcnow
+from worker import metrics, results
 from worker.inputs import RegionInputs, TileInputs, load_meshes, load_submaps, plan_alignment, plan_tile
 from worker.lease import Claim, LeaseKeeper, LeaseLost, claim_job, release
 from worker.results import Outcome
@@ -77,14 +77,6 @@ def _error_message(exc: BaseException) -> str:
     if isinstance(exc, FusionLibraryError):
         return f"{exc.code}: {exc.message}"
     return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-
-
-def _observe(seconds: float, outcome: str) -> None:
-    try:
-        from service.telemetry import observe_fusion_duration
-    except ImportError:
-        return
-    observe_fusion_duration(seconds, outcome)
 
 
 def _torch_threads() -> None:
@@ -160,12 +152,12 @@ def _run_reconstruction(
     with factory() as db:
         inputs = plan_tile(db, settings, claim.i, claim.j)
         latest = db.execute(
-            select(TileVersion.input_fingerprint)
+            select(TileVersion.input_fingerprint, TileVersion.created_at)
             .where(TileVersion.tile_i == claim.i, TileVersion.tile_j == claim.j)
             .order_by(TileVersion.version.desc())
             .limit(1)
-        ).scalar_one_or_none()
-        unchanged = latest == inputs.fingerprint
+        ).one_or_none()
+        unchanged = latest is not None and latest[0] == inputs.fingerprint
         if not unchanged:
             if not inputs.rows:
                 raise ValueError("the tile holds no aligned submap")
@@ -184,7 +176,15 @@ def _run_reconstruction(
     if keeper.lost.is_set():
         raise LeaseLost(f"lease of tile ({claim.i}, {claim.j}) lost")
     blob_ids = results.store_blobs(blobs, result)
-    return results.commit_success(factory, claim, inputs, result, blob_ids, time.monotonic() - started)
+    outcome = results.commit_success(factory, claim, inputs, result, blob_ids, time.monotonic() - started)
+    if outcome is Outcome.succeeded:
+        previous = latest[1] if latest is not None else None
+        metrics.submaps_fused(
+            [s.created_at for s, _, _ in inputs.rows
+             if previous is None or (s.refined_at is not None and s.refined_at > previous)],
+            utcnow(),
+        )
+    return outcome
 
 
 def run_fusion_job(
@@ -208,13 +208,44 @@ def run_fusion_job(
     if claim is None:
         return Outcome.skipped
     started = time.monotonic()
+    metrics.job_started(claim.kind, claim.queued_since, claim.started_at)
+    label, code = "failed", None
+    try:
+        outcome, label = _run_claimed(job_id, factory, blobs, settings, claim)
+    except WorkerShutdown:
+        label = "interrupted"
+        raise
+    except TransientJobError:
+        label = "transient"
+        raise
+    except _Failed as failed:
+        code = failed.code
+        return Outcome.failed
+    finally:
+        metrics.job_finished(claim.kind, label, time.monotonic() - started, code)
+    return outcome
+
+
+class _Failed(Exception):
+    """A job that ended ``failed`` (recorded already), with its error code for the metrics."""
+
+    def __init__(self, code: str) -> None:
+        super().__init__(code)
+        self.code = code
+
+
+def _run_claimed(
+    job_id: str, factory: sessionmaker[Session], blobs: BlobStore, settings: Settings, claim: Claim
+) -> tuple[Outcome, str]:
+    """Run a claimed job; returns its outcome and the outcome's metrics label. Raises :class:`_Failed`
+    for a job that failed (recorded), :class:`TransientJobError` and :class:`WorkerShutdown`."""
     run = _run_alignment if claim.kind == JobKind.align.value else _run_reconstruction
     try:
         with LeaseKeeper(factory, claim) as keeper:
             outcome = run(factory, blobs, settings, claim, keeper)
     except LeaseLost as exc:
         log.warning("job %s: %s; another worker re-runs it", job_id, exc)
-        return Outcome.lost
+        return Outcome.lost, Outcome.lost.value
     except WorkerShutdown:
         log.warning("job %s interrupted by shutdown; back to queued", job_id)
         release(factory, claim, error=None)
@@ -230,8 +261,5 @@ def run_fusion_job(
         message = _error_message(exc)
         log.error("%s job %s of tile(s) %s failed: %s", claim.kind, job_id, claim.tiles, message, exc_info=exc)
         release(factory, claim, error=message)
-        _observe(time.monotonic() - started, "failed")
-        return Outcome.failed
-    if outcome is Outcome.succeeded:
-        _observe(time.monotonic() - started, "succeeded")
-    return outcome
+        raise _Failed(metrics.error_code(exc)) from exc
+    return outcome, outcome.value

@@ -73,3 +73,51 @@ def test_a_failed_fusion_counts_its_attempt(env: Any, monkeypatch: pytest.Monkey
     assert (job.state, job.attempts, tile.state) == (JobState.failed.value, 1, TileState.failed.value)
     assert tile.last_error == "empty_tile: nothing to fuse"
     assert _run(env) is Outcome.skipped  # a finished job is not run again
+
+
+def _sample(name: str, **labels: str) -> float:
+    from worker import metrics
+
+    return metrics._get().registry.get_sample_value(name, labels) or 0.0
+
+
+def test_the_runner_records_worker_metrics(env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Durations by kind and outcome, queue waits, failures by code, in progress back to 0, and one
+    upload → fused sample per submap a new version includes for the first time."""
+    before = {
+        "align": _sample("fleetmap_worker_job_duration_seconds_count", kind="align", outcome="succeeded"),
+        "interrupted": _sample("fleetmap_worker_job_duration_seconds_count", kind="reconstruct",
+                               outcome="interrupted"),
+        "failed": _sample("fleetmap_worker_job_failures_total", kind="reconstruct", code="empty_tile"),
+        "wait": _sample("fleetmap_worker_queue_wait_seconds_count", kind="reconstruct"),
+        "fused": _sample("fleetmap_worker_upload_to_fused_seconds_count"),
+    }
+    monkeypatch.setattr(runner, "_align", FakeAlign())
+    assert _run(env) is Outcome.succeeded
+    env.job_id = _job_and_tile(env)[1].job_id
+    monkeypatch.setattr(runner, "_fuse", FakeFusion(error=WorkerShutdown()))
+    with pytest.raises(WorkerShutdown):
+        _run(env)
+    monkeypatch.setattr(runner, "_fuse", FakeFusion())
+    assert _run(env) is Outcome.succeeded
+    assert _sample("fleetmap_worker_job_duration_seconds_count", kind="align", outcome="succeeded") == (
+        before["align"] + 1
+    )
+    assert _sample("fleetmap_worker_job_duration_seconds_count", kind="reconstruct", outcome="interrupted") == (
+        before["interrupted"] + 1
+    )
+    assert _sample("fleetmap_worker_queue_wait_seconds_count", kind="reconstruct") == before["wait"] + 2
+    assert _sample("fleetmap_worker_upload_to_fused_seconds_count") == before["fused"] + 1
+    assert _sample("fleetmap_worker_jobs_in_progress", kind="reconstruct") == 0
+    assert _sample("fleetmap_worker_jobs_in_progress", kind="align") == 0
+
+    upload(env, "veh-1/a", 1, [14.0, 10.0, 0.0])  # a failing re-fusion: counted under its code
+    with env.db() as db:
+        env.job_id = schedule.request_fusion(db, 0, 0, settings=env.settings).id
+    monkeypatch.setattr(runner, "_fuse", FakeFusion(error=FusionError("nothing to fuse", code="empty_tile")))
+    while (outcome := _run(env)) is Outcome.succeeded:  # the new submap's alignment first
+        env.job_id = _job_and_tile(env)[1].job_id
+    assert outcome is Outcome.failed
+    assert _sample("fleetmap_worker_job_failures_total", kind="reconstruct", code="empty_tile") == (
+        before["failed"] + 1
+    )
