@@ -67,11 +67,11 @@ def test_a_failed_fusion_counts_its_attempt(env: Any, monkeypatch: pytest.Monkey
     monkeypatch.setattr(runner, "_align", FakeAlign())
     assert _run(env) is Outcome.succeeded
     env.job_id = _job_and_tile(env)[1].job_id
-    monkeypatch.setattr(runner, "_fuse", FakeFusion(error=FusionError("nothing to fuse", code="empty_tile")))
+    monkeypatch.setattr(runner, "_fuse", FakeFusion(error=FusionError("the optimisation diverged", code="diverged")))
     assert _run(env) is Outcome.failed
     job, tile = _job_and_tile(env)
     assert (job.state, job.attempts, tile.state) == (JobState.failed.value, 1, TileState.failed.value)
-    assert tile.last_error == "empty_tile: nothing to fuse"
+    assert tile.last_error == "diverged: the optimisation diverged"
     assert _run(env) is Outcome.skipped  # a finished job is not run again
 
 
@@ -88,7 +88,7 @@ def test_the_runner_records_worker_metrics(env: Any, monkeypatch: pytest.MonkeyP
         "align": _sample("fleetmap_worker_job_duration_seconds_count", kind="align", outcome="succeeded"),
         "interrupted": _sample("fleetmap_worker_job_duration_seconds_count", kind="reconstruct",
                                outcome="interrupted"),
-        "failed": _sample("fleetmap_worker_job_failures_total", kind="reconstruct", code="empty_tile"),
+        "failed": _sample("fleetmap_worker_job_failures_total", kind="reconstruct", code="diverged"),
         "wait": _sample("fleetmap_worker_queue_wait_seconds_count", kind="reconstruct"),
         "fused": _sample("fleetmap_worker_upload_to_fused_seconds_count"),
     }
@@ -114,10 +114,10 @@ def test_the_runner_records_worker_metrics(env: Any, monkeypatch: pytest.MonkeyP
     upload(env, "veh-1/a", 1, [14.0, 10.0, 0.0])  # a failing re-fusion: counted under its code
     with env.db() as db:
         env.job_id = schedule.request_fusion(db, 0, 0, settings=env.settings).id
-    monkeypatch.setattr(runner, "_fuse", FakeFusion(error=FusionError("nothing to fuse", code="empty_tile")))
+    monkeypatch.setattr(runner, "_fuse", FakeFusion(error=FusionError("the optimisation diverged", code="diverged")))
     while (outcome := _run(env)) is Outcome.succeeded:  # the new submap's alignment first
         env.job_id = _job_and_tile(env)[1].job_id
     assert outcome is Outcome.failed
-    assert _sample("fleetmap_worker_job_failures_total", kind="reconstruct", code="empty_tile") == (
+    assert _sample("fleetmap_worker_job_failures_total", kind="reconstruct", code="diverged") == (
         before["failed"] + 1
     )
