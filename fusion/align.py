@@ -159,6 +159,8 @@ def align_region(
             p = problem.pool
             problem.pool = SurfacePool(p.points[free], p.normals[free], p.labels[free], p.submap[free],
                                        p.conf_target[free])
+            if not bool(free.any()):  # the new submaps only graze this tile: nothing to track
+                continue
         else:
             fld = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
             if heads is None:
