@@ -36,12 +36,13 @@ import torch
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
 from fusion.field import SemanticSDFField
-from fusion.losses import field_losses, gps_prior_loss, odometry_loss, total_loss
-from fusion.poses import PoseSet, odometry_consistent_start, odometry_pairs
+from fusion.losses import field_losses, total_loss
+from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.reconstruct import TileProblem, build_problem, overlapping
 from fusion.runtime import resolve_device
 from fusion.sampling import SurfacePool, consensus_targets, face_geometry, sample_batch
-from fusion.types import Pose, ProgressCallback, ProgressEvent, SubmapInput, TileSpec
+from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
+from fusion.types import Pose, ProgressCallback, SubmapInput, TileSpec
 
 TileKey = tuple[int, int]
 
@@ -122,11 +123,40 @@ def align_region(
         raise FusionError("align_region: no free submap to align", code="empty_tile")
     size = tiles[0].size_m
     origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
+    poses, gps = _region_poses(subs, origin, config, dev)
+    built, skipped = _build_tiles(subs, tiles, config, dev, poses, origin, frozen)
+    incremental = any(t.frozen for t in built)
+    per_tile = config.align_incremental_iterations_per_tile if incremental else config.align_iterations_per_tile
+    iterations = max(1, per_tile * len(built))
+    t_train = time.perf_counter()
+    losses = _train(built, subs, poses, gps, config, iterations, gen, progress)
+    train_s = time.perf_counter() - t_train
+    fields = {t.key: {k: v.detach().cpu().clone() for k, v in t.field.state_dict().items()} for t in built}
+    metrics = {
+        "losses": losses,
+        "iterations": iterations,
+        "incremental": incremental,
+        "duration_s": time.perf_counter() - t_start,
+        "duration_train_s": train_s,
+        "device": str(dev),
+        "num_submaps": len(subs),
+        "num_free": int(sum(s.free for s in subs)),
+        "num_tiles": len(built),
+        "frozen_tiles": [list(t.key) for t in built if t.frozen],
+        "tile_pool_points": {f"{t.key[0]}_{t.key[1]}": int(t.problem.pool.points.shape[0]) for t in built},
+        "tile_share": {f"{t.key[0]}_{t.key[1]}": round(t.share, 4) for t in built},
+        "skipped": skipped,
+    }
+    return AlignResult(map_poses(poses, origin, subs), fields, metrics)
+
+
+def _region_poses(
+    subs: list[SubmapInput], origin: np.ndarray, config: FusionConfig, dev: torch.device
+) -> tuple[PoseSet, torch.Tensor]:
+    """The region's poses (region frame: map frame shifted by ``-origin``): each session's odometry
+    chain placed on its GPS poses (fixed submaps dominate); and the GPS anchors of the prior."""
     to_region = np.eye(4)
     to_region[:3, 3] = -origin
-    index_of = {s.id: k for k, s in enumerate(subs)}
-
-    # region poses: each session's odometry chain placed on its GPS poses (fixed submaps dominate)
     init = [to_region @ s.pose_init.matrix() for s in subs]
     gps = torch.tensor(np.stack([to_region @ (s.pose_gps or s.pose_init).matrix() for s in subs]), device=dev)
     cents = [s.mesh.vertices.mean(0) for s in subs]
@@ -134,7 +164,16 @@ def align_region(
     centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(start, cents, strict=True)])
     poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids),
                     torch.tensor([s.free for s in subs])).to(dev)
+    return poses, gps
 
+
+def _build_tiles(
+    subs: list[SubmapInput], tiles: list[TileSpec], config: FusionConfig, dev: torch.device, poses: PoseSet,
+    origin: np.ndarray, frozen: dict[TileKey, dict[str, torch.Tensor]],
+) -> tuple[list[_Tile], dict[str, str]]:
+    """Every tile with data: its problem (surface pool, boxes), its field (held when ``frozen`` has one;
+    else new, sharing the heads of the other trained tiles) and its sampling share."""
+    index_of = {s.id: k for k, s in enumerate(subs)}
     heads: SemanticSDFField | None = None
     built: list[_Tile] = []
     skipped: dict[str, str] = {}
@@ -153,13 +192,8 @@ def align_region(
         shift = torch.eye(4, dtype=torch.float64, device=dev)
         shift[:3, 3] = torch.tensor(origin - problem.origin, device=dev)
         if state is not None:
-            fld = field_from_state(state, config).to(dev)
-            fld.requires_grad_(False)
-            free = torch.tensor([s.free for s in problem.submaps], device=dev)[problem.pool.submap]
-            p = problem.pool
-            problem.pool = SurfacePool(p.points[free], p.normals[free], p.labels[free], p.submap[free],
-                                       p.conf_target[free])
-            if not bool(free.any()):  # the new submaps only graze this tile: nothing to track
+            fld = _held_field(problem, state, config, dev)
+            if len(problem.pool.points) == 0:  # the new submaps only graze this tile: nothing to track
                 continue
         else:
             fld = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
@@ -177,6 +211,23 @@ def align_region(
         built.append(t)
     if not built:
         raise FusionError("align_region: no tile has data to align against", code="empty_tile")
+    _normalise_shares(built)
+    return built, skipped
+
+
+def _held_field(problem: TileProblem, state: dict[str, torch.Tensor], config: FusionConfig,
+                dev: torch.device) -> SemanticSDFField:
+    """A frozen field of an earlier alignment; the problem's pool keeps the free submaps' samples only."""
+    fld = field_from_state(state, config).to(dev)
+    fld.requires_grad_(False)
+    free = torch.tensor([s.free for s in problem.submaps], device=dev)[problem.pool.submap]
+    p = problem.pool
+    problem.pool = SurfacePool(p.points[free], p.normals[free], p.labels[free], p.submap[free], p.conf_target[free])
+    return fld
+
+
+def _normalise_shares(built: list[_Tile]) -> None:
+    """Sampling probability per tile ∝ its surface area, at least a quarter of an even share."""
     total_area = sum(t.share for t in built) or 1.0
     n = len(built)
     for t in built:
@@ -185,33 +236,27 @@ def align_region(
     for t in built:
         t.share /= norm
 
+
+def _train(
+    built: list[_Tile], subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: FusionConfig,
+    iterations: int, gen: torch.Generator, progress: ProgressCallback | None,
+) -> dict[str, float]:
+    """One tile per step (drawn by share): its field terms, plus odometry and GPS prior on every pose."""
+    dev = gps.device
     shares = torch.tensor([t.share for t in built], dtype=torch.float64)
-    incremental = any(t.frozen for t in built)
-    per_tile = config.align_incremental_iterations_per_tile if incremental else config.align_iterations_per_tile
-    iterations = max(1, per_tile * n)
-    pairs, odom_rel, odom_ist, odom_isr = (x.to(dev) for x in odometry_pairs(subs))
-    gps_ist = torch.tensor([1 / max(s.gps_sigma.trans_m, 1e-3) for s in subs], dtype=torch.float64, device=dev)
-    gps_isr = torch.tensor([1 / np.radians(max(s.gps_sigma.rot_deg, 1e-3)) for s in subs], dtype=torch.float64,
-                           device=dev)
+    pose_terms = PoseTerms.of(subs, dev)
     params = list({id(p): p for t in built if not t.frozen for p in t.field.parameters()}.values())
-    groups = [{"params": [poses.rho], "lr": config.lr_pose_trans, "weight_decay": 0.0},
-              {"params": [poses.phi], "lr": config.lr_pose_rot, "weight_decay": 0.0}]
-    if params:
-        groups.insert(0, {"params": params, "lr": config.lr_field, "weight_decay": config.weight_decay})
-    optimizer = torch.optim.AdamW(groups)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, config.lr_decay_final ** (1.0 / iterations))
     # the single-tile schedule's warm-up fraction (fields take a rough shape before poses move); none
     # when every tile is a held map
     warmup = round(config.pose_warmup * iterations / max(config.iterations, 1)) if params else 0
-    consensus_iters = {int(f * iterations) for f in config.consensus_at} if config.consensus else set()
-    if incremental:
+    optimiser = Optimiser(params, poses, config, iterations, warmup)
+    consensus = consensus_iterations(config, iterations)
+    if any(t.frozen for t in built):
         for t in built:
             t.field.set_active_levels(config.num_levels)
-    report_every = max(1, iterations // 50)
-    terms_f: dict[str, float] = {}
-    t_train = time.perf_counter()
+    report = Reporter(progress, iterations, "align")
     for it in range(iterations):
-        if it in consensus_iters:
+        if it in consensus:
             with torch.no_grad():
                 current = poses()
             for t in built:
@@ -227,44 +272,11 @@ def align_region(
                              t.problem.hi, config.surface_samples, 0 if t.frozen else config.space_samples,
                              config.sigma_s, gen)
         terms, _ = field_losses(t.field, batch, config, gen)
-        terms["odom"] = odometry_loss(region, pairs, odom_rel, odom_ist, odom_isr).float()
-        terms["gps"] = gps_prior_loss(region, gps, gps_ist, gps_isr).float()
+        terms |= pose_terms.losses(region, gps)
         loss = total_loss(terms, config)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if it < warmup:
-            poses.rho.grad = None
-            poses.phi.grad = None
-        optimizer.step()
-        scheduler.step()
-        if progress is not None and (it % report_every == 0 or it == iterations - 1):
-            terms_f = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(loss.detach())}
-            progress(ProgressEvent(it + 1, iterations, terms_f, "align"))
-    terms_f = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(loss.detach())}
-    train_s = time.perf_counter() - t_train
-
-    with torch.no_grad():
-        final = poses().cpu().numpy()
-    to_map = np.eye(4)
-    to_map[:3, 3] = origin
-    out = {s.id: Pose.from_matrix(to_map @ final[k]) for k, s in enumerate(subs) if s.free}
-    fields = {t.key: {k: v.detach().cpu().clone() for k, v in t.field.state_dict().items()} for t in built}
-    metrics = {
-        "losses": terms_f,
-        "iterations": iterations,
-        "incremental": incremental,
-        "duration_s": time.perf_counter() - t_start,
-        "duration_train_s": train_s,
-        "device": str(dev),
-        "num_submaps": len(subs),
-        "num_free": int(sum(s.free for s in subs)),
-        "num_tiles": n,
-        "frozen_tiles": [list(t.key) for t in built if t.frozen],
-        "tile_pool_points": {f"{t.key[0]}_{t.key[1]}": int(t.problem.pool.points.shape[0]) for t in built},
-        "tile_share": {f"{t.key[0]}_{t.key[1]}": round(t.share, 4) for t in built},
-        "skipped": skipped,
-    }
-    return AlignResult(out, fields, metrics)
+        optimiser.step(it, loss)
+        report(it, terms, loss)
+    return loss_values(terms, loss)
 
 
 def _posed(t: _Tile, region: torch.Tensor) -> torch.Tensor:
