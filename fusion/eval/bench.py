@@ -254,16 +254,11 @@ def format_table(report: dict[str, Any]) -> str:
 def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
               json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
               out: Callable[[str], None] = print, tile_size: float | None = None,
-              vertex_noise_m: float | None = None, tiles: int = 3) -> dict[str, Any]:
+              vertex_noise_m: float | None = None) -> dict[str, Any]:
     """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
     ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
-    (and optionally write to ``json_path``) every figure, with ``tiles`` = 1. ``tiles`` > 1 (default 3):
-    the multi-tile bench over a ``tiles``×``tiles`` core (``fusion.eval.bench_region``)."""
-    if tiles > 1:
-        from fusion.eval.bench_region import run_region_bench
-
-        return run_region_bench(preset, sessions, gps_noise, seed, json_path, rows, config, out, tile_size,
-                                vertex_noise_m, tiles)
+    (and optionally write to ``json_path``) every figure: the one-tile bench (``fleetmap bench --tiles
+    1``); the multi-tile one is ``fusion.eval.bench_region.run_region_bench``."""
     from fusion.config import FusionConfig
     from fusion.eval.synth.fleet import FleetParams
     from fusion.eval.synth.world import WorldParams

@@ -110,9 +110,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
         base = FusionConfig.preset(args.preset)
         config = base.with_(iterations=args.iterations or base.iterations,
                             align_iterations_per_tile=args.align_iterations or base.align_iterations_per_tile)
-    run_bench(preset=args.preset, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg), seed=args.seed,
+    gps_noise = (args.gps_noise_m, args.gps_noise_deg)
+    if args.tiles > 1:  # the multi-tile bench: align the region, reconstruct every tile
+        from fusion.eval.bench_region import run_region_bench
+
+        run_region_bench(args.preset, args.sessions, gps_noise, args.seed, args.json, rows, config, print,
+                         args.tile_size, args.vertex_noise_m, args.tiles)
+        return 0
+    run_bench(preset=args.preset, sessions=args.sessions, gps_noise=gps_noise, seed=args.seed,
               json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m,
-              tiles=args.tiles, config=config)
+              config=config)
     return 0
 
 
