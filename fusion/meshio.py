@@ -247,25 +247,61 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
     """
     if b"\r" in body:  # universal newlines, as plyfile's text stream reads them
         body = body.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    raw = np.frombuffer(body, dtype=np.uint8)
-    newlines = np.flatnonzero(raw == ord("\n"))
-    starts = np.concatenate(([0], newlines + 1))  # line k is body[starts[k] : ends[k]]
-    ends = np.append(newlines, len(body))
-    if len(starts) < sum(e.count for e in header.elements):
+    text = _AsciiBody.of(body)
+    if len(text.starts) < sum(e.count for e in header.elements):
         return None
-    # where each value starts: a non-blank byte after a blank one (bytes <= 32 are blanks here, so
-    # control characters separate values, and then fail numpy's parse below)
-    space = raw <= 32
-    token_start = np.empty(len(raw), dtype=bool)
-    token_start[:1] = ~space[:1]
-    np.greater(space[:-1], space[1:], out=token_start[1:])
-    token_at = np.flatnonzero(token_start)
-    del raw, space, token_start
     row, token = 0, 0
     for element in header.elements:
-        n = element.count
+        layout = _AsciiLayout.of(element, index_name)
+        data = None if layout is None else _read_ascii_element(text, element, layout, row, token)
+        if layout is None or data is None:
+            return None
+        element.data = data
+        row += element.count
+        token += element.count * layout.width
+    return header
+
+
+@dataclass
+class _AsciiBody:
+    """An ASCII body's bytes, its lines (``body[starts[k] : ends[k]]``) and where each value starts."""
+
+    body: bytes
+    starts: np.ndarray
+    ends: np.ndarray
+    token_at: np.ndarray
+
+    @classmethod
+    def of(cls, body: bytes) -> _AsciiBody:
+        raw = np.frombuffer(body, dtype=np.uint8)
+        newlines = np.flatnonzero(raw == ord("\n"))
+        starts = np.concatenate(([0], newlines + 1))
+        ends = np.append(newlines, len(body))
+        # a value starts at a non-blank byte after a blank one (bytes <= 32 are blanks here, so control
+        # characters separate values, and then fail numpy's parse)
+        space = raw <= 32
+        token_start = np.empty(len(raw), dtype=bool)
+        token_start[:1] = ~space[:1]
+        np.greater(space[:-1], space[1:], out=token_start[1:])
+        return cls(body, starts, ends, np.flatnonzero(token_start))
+
+
+@dataclass
+class _AsciiLayout:
+    """The row layout of one element: numpy fields, (name, first column, width) per property, values
+    per row, which properties are integers and the parse type of the whole block."""
+
+    fields: list[tuple[str, np.dtype[Any], tuple[int, ...]]]
+    columns: list[tuple[str, int, int]]
+    width: int
+    is_int: list[bool]
+    dtype: type
+
+    @classmethod
+    def of(cls, element: plyfile.PlyElement, index_name: str) -> _AsciiLayout | None:
+        """None for a list property other than the faces' index list."""
         fields: list[tuple[str, np.dtype[Any], tuple[int, ...]]] = []
-        columns: list[tuple[str, int, int]] = []  # name, first column, width
+        columns: list[tuple[str, int, int]] = []
         width = 0
         for prop in element.properties:
             kind = np.dtype(prop.val_dtype).newbyteorder("=")
@@ -279,65 +315,72 @@ def _read_ascii(header: plyfile.PlyData, body: bytes, index_name: str) -> plyfil
                 fields.append((prop.name, kind, ()))
                 columns.append((prop.name, width, 1))
                 width += 1
-        lines = slice(row, row + n)
         is_int = [np.dtype(kind).kind in "iu" for _, kind, _ in fields]
-        dtype = np.int64 if all(is_int) else np.float64
-        wrong = _rows_not_of_width(token_at, token, starts[lines], ends[lines], width)
-        if wrong is not None:
-            if element.name == "face":
-                return None  # maybe polygons
-            k, found = wrong
-            if not (k and _parse_rows(body[starts[row] : ends[row + k - 1]], dtype, k * width) is None):
-                raise _fail(
-                    "malformed_ply",
-                    f"bad PLY data: element '{element.name}' row {k} has {found} values, its properties "
-                    f"need {width}",
-                    ("mesh", element.name, k),
-                )
-            lines = slice(row, row + k)  # a value that is not a number comes first: find it
-        block = body[starts[row] : ends[row + n - 1]] if n else b""
-        values = _parse_rows(block, dtype, n * width) if lines.stop == row + n else None
-        if values is None:
-            k = _first_bad_row(body, starts[lines], ends[lines], dtype, width)
+        return cls(fields, columns, width, is_int, np.int64 if all(is_int) else np.float64)
+
+
+def _read_ascii_element(
+    text: _AsciiBody, element: plyfile.PlyElement, layout: _AsciiLayout, row: int, token: int
+) -> np.ndarray | None:
+    """The rows ``row …`` of ``element`` as a structured array; None when they hold polygons."""
+    n, width, body, starts, ends = element.count, layout.width, text.body, text.starts, text.ends
+    lines = slice(row, row + n)
+    wrong = _rows_not_of_width(text.token_at, token, starts[lines], ends[lines], width)
+    if wrong is not None:
+        if element.name == "face":
+            return None  # maybe polygons
+        k, found = wrong
+        if not (k and _parse_rows(body[starts[row] : ends[row + k - 1]], layout.dtype, k * width) is None):
             raise _fail(
                 "malformed_ply",
-                f"bad PLY data: element '{element.name}' row {k}: a value is not a number",
+                f"bad PLY data: element '{element.name}' row {k} has {found} values, its properties need {width}",
                 ("mesh", element.name, k),
             )
-        if n and dtype is np.float64 and any(is_int):
-            decimal = _first_non_integer_row(body, starts[row], ends[row + n - 1], token_at, token, columns, is_int)
-            if decimal is not None:
+        lines = slice(row, row + k)  # a value that is not a number comes first: find it
+    block = body[starts[row] : ends[row + n - 1]] if n else b""
+    values = _parse_rows(block, layout.dtype, n * width) if lines.stop == row + n else None
+    if values is None:
+        k = _first_bad_row(body, starts[lines], ends[lines], layout.dtype, width)
+        raise _fail("malformed_ply", f"bad PLY data: element '{element.name}' row {k}: a value is not a number",
+                    ("mesh", element.name, k))
+    if n and layout.dtype is np.float64 and any(layout.is_int):
+        decimal = _first_non_integer_row(body, starts[row], ends[row + n - 1], text.token_at, token, layout.columns,
+                                         layout.is_int)
+        if decimal is not None:
+            raise _fail(
+                "malformed_ply",
+                f"bad PLY data: element '{element.name}' row {decimal}: an integer property holds a value "
+                "written as a decimal",
+                ("mesh", element.name, decimal),
+            )
+    table = values.reshape(n, width)
+    counts = next((first - 1 for _, first, w in layout.columns if w == 3), None)
+    if counts is not None and np.any(table[:, counts] != 3):
+        return None  # polygons (or a count that disagrees with the row: plyfile says which)
+    return _typed_columns(element.name, table, layout)
+
+
+def _typed_columns(name: str, table: np.ndarray, layout: _AsciiLayout) -> np.ndarray:
+    """The parsed ``table`` (n, width) as the element's structured array; integers checked to fit."""
+    n = len(table)
+    data = np.empty(n, dtype=layout.fields)
+    for (prop, first, w), (_, kind, _), integer in zip(layout.columns, layout.fields, layout.is_int, strict=True):
+        part = table[:, first : first + w] if w > 1 else table[:, first]
+        if integer:
+            info = np.iinfo(kind)
+            ok = (part >= info.min) & (part <= info.max)
+            if layout.dtype is np.float64:
+                ok &= part == np.floor(part)
+            if not np.all(ok):
+                k = int(np.flatnonzero(~ok.reshape(n, -1).all(axis=1))[0])
                 raise _fail(
                     "malformed_ply",
-                    f"bad PLY data: element '{element.name}' row {decimal}: an integer property holds a "
-                    "value written as a decimal",
-                    ("mesh", element.name, decimal),
+                    f"bad PLY data: element '{name}' row {k}: property '{prop}' needs integers in "
+                    f"{info.min}..{info.max}",
+                    ("mesh", name, k),
                 )
-        table = values.reshape(n, width)
-        counts = next((first - 1 for _, first, w in columns if w == 3), None)
-        if counts is not None and np.any(table[:, counts] != 3):
-            return None  # polygons (or a count that disagrees with the row: plyfile says which)
-        data = np.empty(n, dtype=fields)
-        for (name, first, w), (_, kind, _), integer in zip(columns, fields, is_int, strict=True):
-            part = table[:, first : first + w] if w > 1 else table[:, first]
-            if integer:
-                info = np.iinfo(kind)
-                ok = (part >= info.min) & (part <= info.max)
-                if dtype is np.float64:
-                    ok &= part == np.floor(part)
-                if not np.all(ok):
-                    k = int(np.flatnonzero(~ok.reshape(n, -1).all(axis=1))[0])
-                    raise _fail(
-                        "malformed_ply",
-                        f"bad PLY data: element '{element.name}' row {k}: property '{name}' needs "
-                        f"integers in {info.min}..{info.max}",
-                        ("mesh", element.name, k),
-                    )
-            data[name] = part
-        element.data = data
-        row += n
-        token += n * width
-    return header
+        data[prop] = part
+    return data
 
 
 def _read_body(data: bytes, header: plyfile.PlyData, offset: int, index_name: str) -> plyfile.PlyData:

@@ -118,54 +118,73 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     skipped (e.g. true poses for an oracle). A tile (or region) the fusion finds no data in (its
     submaps only graze it through their GPS uncertainty) is recorded in ``skipped`` (else raised).
     ``align_metrics``: if given, each region's alignment metrics are appended to it."""
-    from fusion.align import align_region
-    from fusion.reconstruct import reconstruct_tile
-
     refined = {} if refined is None else refined
     keys = sorted({(int(i), int(j)) for i, j in tile_keys})
     if fixed_poses is None:
-        by_id = {s.input.id: s for s in submaps}
-        found = regions({s.input.id: s.tiles for s in submaps}, only=keys)
-        for r, region in enumerate(found):
-            inputs = [replace(by_id[sid].input, pose_init=refined.get(sid, by_id[sid].pose_gps),
-                              pose_gps=by_id[sid].pose_gps, free=True) for sid in region.submaps]
+        _align_regions(submaps, keys, config, tile_size, progress, refined, skipped, align_metrics)
+    poses = fixed_poses if fixed_poses is not None else refined
+    return _reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped)
 
-            def align_progress(ev: ProgressEvent, r: int = r, n_tiles: int = len(region.tiles)) -> None:
-                stage = f"region {r + 1}/{len(found)} ({n_tiles} tiles) {ev.stage}"
-                progress(ProgressEvent(ev.iteration, ev.total, ev.losses, stage))  # type: ignore[misc]
 
-            try:
-                aligned = align_region(inputs, [TileSpec(i, j, tile_size) for i, j in region.tiles], config,
-                                       progress=align_progress if progress else None)
-            except FusionError as exc:
-                if skipped is None:
-                    raise
-                skipped["region " + ",".join(f"{i}_{j}" for i, j in region.tiles)] = exc.message
-                continue
-            refined.update(aligned.poses)
-            if align_metrics is not None:
-                align_metrics.append(aligned.metrics | {"tiles": [list(t) for t in region.tiles]})
+def _staged(progress: ProgressCallback | None, label: str) -> ProgressCallback | None:
+    """``progress`` with ``label`` in front of every event's stage."""
+    if progress is None:
+        return None
+
+    def report(ev: ProgressEvent) -> None:
+        progress(ProgressEvent(ev.iteration, ev.total, ev.losses, f"{label} {ev.stage}"))
+
+    return report
+
+
+def _skip_or_raise(skipped: dict[str, str] | None, what: str, exc: FusionError) -> None:
+    if skipped is None:
+        raise exc
+    skipped[what] = exc.message
+
+
+def _align_regions(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], config: FusionConfig,
+                   tile_size: float, progress: ProgressCallback | None, refined: dict[str, Pose],
+                   skipped: dict[str, str] | None, align_metrics: list[dict[str, Any]] | None) -> None:
+    """Align every region of ``keys`` (all its submaps free); ``refined`` gets the aligned poses."""
+    from fusion.align import align_region
+
+    by_id = {s.input.id: s for s in submaps}
+    found = regions({s.input.id: s.tiles for s in submaps}, only=keys)
+    for r, region in enumerate(found):
+        inputs = [replace(by_id[sid].input, pose_init=refined.get(sid, by_id[sid].pose_gps),
+                          pose_gps=by_id[sid].pose_gps, free=True) for sid in region.submaps]
+        label = f"region {r + 1}/{len(found)} ({len(region.tiles)} tiles)"
+        try:
+            aligned = align_region(inputs, [TileSpec(i, j, tile_size) for i, j in region.tiles], config,
+                                   progress=_staged(progress, label))
+        except FusionError as exc:
+            _skip_or_raise(skipped, "region " + ",".join(f"{i}_{j}" for i, j in region.tiles), exc)
+            continue
+        refined.update(aligned.poses)
+        if align_metrics is not None:
+            align_metrics.append(aligned.metrics | {"tiles": [list(t) for t in region.tiles]})
+
+
+def _reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], config: FusionConfig,
+                       tile_size: float, progress: ProgressCallback | None, poses: dict[str, Pose],
+                       on_tile: Callable[[tuple[int, int], FusionResult], None] | None,
+                       skipped: dict[str, str] | None) -> dict[tuple[int, int], FusionResult]:
+    """Each tile in order with every submap held at ``poses`` (else its GPS pose); neighbours
+    reconstructed earlier pin the shared border."""
+    from fusion.reconstruct import reconstruct_tile
+
     results: dict[tuple[int, int], FusionResult] = {}
     for n, key in enumerate(keys):
-        inputs = []
-        for s in submaps:
-            if key not in s.tiles:
-                continue
-            pose = fixed_poses[s.input.id] if fixed_poses is not None else refined.get(s.input.id, s.pose_gps)
-            inputs.append(replace(s.input, pose_init=pose, free=False))
+        inputs = [replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=False)
+                  for s in submaps if key in s.tiles]
         pins = tiles.border_pins(*key, lambda k: results[k].border if k in results else None)
-
-        def tile_progress(ev: ProgressEvent, n: int = n, key: tuple[int, int] = key) -> None:
-            stage = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)}) {ev.stage}"
-            progress(ProgressEvent(ev.iteration, ev.total, ev.losses, stage))  # type: ignore[misc]
-
+        label = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)})"
         try:
             result = reconstruct_tile(inputs, TileSpec(key[0], key[1], tile_size), config,
-                               progress=tile_progress if progress else None, border_pins=pins or None)
+                                      progress=_staged(progress, label), border_pins=pins or None)
         except FusionError as exc:
-            if skipped is None:
-                raise
-            skipped[f"{key[0]}_{key[1]}"] = exc.message
+            _skip_or_raise(skipped, f"{key[0]}_{key[1]}", exc)
             continue
         results[key] = result
         if on_tile is not None:
