@@ -397,7 +397,7 @@ def label_first(lists: list[list[int]], ids: list[int]) -> np.ndarray:
 
 
 def plyfile_only(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(meshio, "_read_ascii", lambda *args: None)
+    monkeypatch.setattr(meshio, "read_ascii", lambda *args: None)
 
 
 @pytest.mark.parametrize("case", sorted(ascii_vs_binary_cases()))
