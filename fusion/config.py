@@ -117,6 +117,7 @@ class FusionConfig:
     def preset(name: str = "cpu") -> FusionConfig:
         """``"cpu"``: 64 m tiles on 2 CPU cores in about a minute; ``"paper"``: the paper's sizes (GPU);
         ``"tiny"``: a few iterations and a coarse lattice, for tests and smoke runs (seconds on 2 cores)."""
+        # Each preset is a declarative list of overrides; they look alike on purpose (duplicates: deliberate).
         if name == "cpu":
             return FusionConfig()
         if name == "tiny":

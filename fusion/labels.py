@@ -12,6 +12,7 @@ class Label:
     color: tuple[int, int, int]
 
 
+# The API's label table (API.md), declarative: rows alike by nature (duplicates: deliberate).
 LABELS: tuple[Label, ...] = (
     Label(0, "unlabeled", (0, 0, 0)),
     Label(1, "road", (128, 64, 128)),

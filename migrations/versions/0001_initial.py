@@ -18,6 +18,7 @@ branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
 
+# Table definitions are declarative and alike by nature; a shipped migration is never refactored.
 def upgrade() -> None:
     op.create_table(
         "sessions",

@@ -531,6 +531,7 @@ def test_fused_ply_properties_and_round_trip() -> None:
     ply = plyfile.PlyData.read(io.BytesIO(data))
     assert not ply.text and ply.byte_order == "<"
     vertex, face = ply["vertex"], ply["face"]
+    # API.md's layout written out on purpose, not read from fusion.meshio: the test pins the contract.
     assert [(p.name, p.val_dtype) for p in vertex.properties] == [
         ("x", "f4"),
         ("y", "f4"),

@@ -13,6 +13,8 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 
 def job_public(job: FusionJob) -> JobPublic:
+    # A field-by-field row → wire model mapping, like the tiles and submaps routes' (declarative: the
+    # wire format is kept apart from the table on purpose).
     return JobPublic(
         id=job.id,
         kind=job.kind,  # type: ignore[arg-type]
