@@ -1,6 +1,6 @@
 """Benchmark on a synthetic fleet: simulate, fuse one 64 m tile the way the offline path does,
 evaluate against the ground truth, print a table (and optionally write every figure as JSON). This is
-the one-tile bench (``--tiles 1``); the default multi-tile bench is ``fusion.bench_region``.
+the one-tile bench (``--tiles 1``); the default multi-tile bench is ``fusion.eval.bench_region``.
 
 Rows are functions ``row_*(ctx) -> dict`` registered in ``ROWS``; to add an ablation, write one more
 function (e.g. fuse with a changed ``FusionConfig``) and register it. ``evaluate_mesh`` turns a fused
@@ -258,9 +258,9 @@ def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, fl
     """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
     ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
     (and optionally write to ``json_path``) every figure, with ``tiles`` = 1. ``tiles`` > 1 (default 3):
-    the multi-tile bench over a ``tiles``×``tiles`` core (``fusion.bench_region``)."""
+    the multi-tile bench over a ``tiles``×``tiles`` core (``fusion.eval.bench_region``)."""
     if tiles > 1:
-        from fusion.bench_region import run_region_bench
+        from fusion.eval.bench_region import run_region_bench
 
         return run_region_bench(preset, sessions, gps_noise, seed, json_path, rows, config, out, tile_size,
                                 vertex_noise_m, tiles)
