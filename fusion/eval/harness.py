@@ -1,6 +1,6 @@
 """The :class:`Harness` the ablation studies (``fusion.eval.ablations``) run on, backed by :mod:`fusion.eval.bench`: the same simulated fleet, tile,
-offline fusion path (``fusion.offline.fuse_tiles``) and scoring (``bench.evaluate_mesh`` after
-``bench.gauge_transform``, ``bench.pose_figures``) as ``fleetmap bench``, so ablation rows compare with
+offline fusion path (``fusion.offline.fuse_tiles``) and scoring (``bench.evaluate_both``: the
+gauge-aligned scoring of ``fusion.eval.scoring``; ``bench.pose_figures``) as ``fleetmap bench``, so ablation rows compare with
 the bench table: ``geo_*``/``sem_f`` gauge-aligned, ``abs_geo_f``/``abs_sem_f`` in the map frame.
 """
 
@@ -72,7 +72,7 @@ def _road_km(ctx: bench.BenchContext) -> float:
     """Road length in the tile, km: road-labelled ground-truth area over the road width."""
     from fusion.labels import LABEL_BY_NAME
 
-    gt = ctx.gt_all
+    gt = ctx.points.gt_all
     road = int(np.sum(gt.labels == LABEL_BY_NAME["road"].id))
     density = bench.metrics.DEFAULT_DENSITY  # points per m² of the sampled truth
     width = 2.0 * float(ctx.truth.info.get("world", {}).get("road_half_width", 5.5))
@@ -123,10 +123,8 @@ def bench_harness(args: argparse.Namespace) -> Harness:
         refined pose count at GPS) and in the absolute map frame (``abs_geo_f``, ``abs_sem_f``)."""
         out: Scores = {}
         if len(mesh.faces):
-            figs = bench.evaluate_mesh(s.ctx, mesh, bench.gauge_transform(s.ctx, poses))
-            absolute = bench.evaluate_mesh(s.ctx, mesh)
-            out.update({k: float(figs[k]) for k in ("geo_p", "geo_r", "geo_f", "sem_f")})
-            out.update({f"abs_{k}": float(absolute[k]) for k in ("geo_f", "sem_f")})
+            figs = bench.evaluate_both(s.ctx, mesh, poses)
+            out.update({k: float(figs[k]) for k in ("geo_p", "geo_r", "geo_f", "sem_f", "abs_geo_f", "abs_sem_f")})
         else:
             out.update({k: 0.0 for k in ("geo_p", "geo_r", "geo_f", "sem_f", "abs_geo_f", "abs_sem_f")})
         full = {sm.input.id: sm.pose_gps for sm in s.ctx.submaps} | poses
@@ -151,7 +149,7 @@ def bench_harness(args: argparse.Namespace) -> Harness:
         from fusion.grids.dense import grid_size_bytes
 
         m, size = cfg.tile_margin_m, bench.TILE_SIZE
-        z = s.ctx.gt_all.points[:, 2] if len(s.ctx.gt_all) else np.zeros(1)
+        z = s.ctx.points.gt_all.points[:, 2] if len(s.ctx.points.gt_all) else np.zeros(1)
         lo = torch.tensor([-m, -m, float(z.min()) - cfg.slab_pad_m])
         hi = torch.tensor(
             [size + m, size + m, min(float(z.max()) + cfg.slab_pad_m, float(lo[2]) + cfg.slab_max_m)]
@@ -164,7 +162,7 @@ def bench_harness(args: argparse.Namespace) -> Harness:
         if (
             cfg.grid_type == "octree"
         ):  # sized as allocated around the truth (the fusion allocates around the data)
-            pts = torch.tensor(s.ctx.gt_all.points, dtype=torch.float32)
+            pts = torch.tensor(s.ctx.points.gt_all.points, dtype=torch.float32)
             pts -= torch.tensor([bench.TILE[0] * size, bench.TILE[1] * size, 0.0])
             field.grid.allocate(field.norm(pts))  # type: ignore[operator]
             grid = grid_size_bytes(field.grid)

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from fusion.eval.bench_region import merge_meshes, seam_gaps
 
+from fusion.eval.bench_region import merge_meshes, seam_gaps
 from fusion.types import FusedMesh, FusionResult
 
 
