@@ -75,13 +75,9 @@ def evaluate_both(ctx: BenchContext, mesh: FusedMesh, poses: dict[str, Pose] | N
     return scoring.score_aligned_and_absolute(ctx.points, mesh, gauge, tile_bounds(*TILE, ctx.tile_size))
 
 
-def pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, float]:
+def pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, Any]:
     """Pose RMSE (m, deg) of the tile's home submaps after rigid alignment to the truth."""
-    home = [s for s in ctx.home if s.input.id in poses]
-    if not home:
-        return {}
-    t, r = metrics.pose_rmse([poses[s.input.id] for s in home], [ctx.truth.poses[s.input.id] for s in home])
-    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(home)}
+    return scoring.pose_figures(ctx.home, poses, ctx.truth.poses)
 
 
 def _fuse(ctx: BenchContext, fixed: dict[str, Pose] | None = None) -> tuple[dict[str, Any], Any]:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fusion.eval import metrics, scoring
+from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, fmt, peak_memory, prepare
 from fusion.offline import fuse_tiles
 from fusion.tiles import tile_bounds
@@ -86,11 +86,8 @@ def seam_gaps(results: dict[tuple[int, int], FusionResult], tile_size: float, vo
 
 
 def _pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, Any]:
-    used = [s for s in ctx.submaps if s.input.id in poses]
-    if not used:
-        return {}
-    t, r = metrics.pose_rmse([poses[s.input.id] for s in used], [ctx.truth.poses[s.input.id] for s in used])
-    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(used)}
+    """Pose RMSE (m, deg) of every submap with a pose in ``poses`` after rigid alignment to the truth."""
+    return scoring.pose_figures(ctx.submaps, poses, ctx.truth.poses)
 
 
 def evaluate_region(ctx: BenchContext, results: dict[tuple[int, int], FusionResult], poses: dict[str, Pose] | None,

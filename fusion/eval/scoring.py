@@ -86,6 +86,16 @@ def submap_gauge(submaps: Sequence[LoadedSubmap], poses: dict[str, Pose], true: 
                      [s.input.mesh.vertices for s in submaps])
 
 
+def pose_figures(submaps: Sequence[LoadedSubmap], poses: dict[str, Pose], true: dict[str, Pose]) -> dict[str, Any]:
+    """Pose RMSE (``pose_trans_m`` m, ``pose_rot_deg`` deg) of those ``submaps`` that have a pose in
+    ``poses``, against their ``true`` poses after rigid alignment; ``poses``: how many. Empty if none."""
+    used = [s for s in submaps if s.input.id in poses]
+    if not used:
+        return {}
+    t, r = metrics.pose_rmse([poses[s.input.id] for s in used], [true[s.input.id] for s in used])
+    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(used)}
+
+
 def gauge_size(gauge: Gauge, region: metrics.Region) -> dict[str, float]:
     """Size of a gauge: ``gauge_m`` how far it moves the region's centre (z = 0), metres; ``gauge_deg``
     its rotation angle, degrees."""
