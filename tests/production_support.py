@@ -441,15 +441,18 @@ def deployment(tmp_path: Path, broker_url: str | None = None, **settings: str) -
 IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
 
 
-def submap_meta(session: str, seq: int, t: list[float], agent: str | None = None) -> dict[str, Any]:
-    """Upload meta of submap ``seq`` of ``session`` at map-frame translation ``t`` (identity rotation)."""
+def submap_meta(
+    session: str, seq: int, t: list[float], agent: str | None = None, gps_sigma: float = 1.0
+) -> dict[str, Any]:
+    """Upload meta of submap ``seq`` of ``session`` at map-frame translation ``t`` (identity rotation),
+    GPS sigma ``gps_sigma`` (m and deg); the agent defaults to the session's first path segment."""
     return {
         "agent_id": agent or session.split("/")[0],
         "session_id": session,
         "seq": seq,
         "captured_at": "2026-11-24T08:00:00Z",
         "gps": {"pose": {"t": t, "q": IDENTITY_Q}},
-        "gps_sigma": {"trans_m": 1.0, "rot_deg": 1.0},
+        "gps_sigma": {"trans_m": gps_sigma, "rot_deg": gps_sigma},
         "odometry": {"t": [float(seq), 0.0, 0.0], "q": IDENTITY_Q},
     }
 
