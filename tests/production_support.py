@@ -131,6 +131,40 @@ class RedisServer:
         self.proc = None
 
 
+@contextlib.contextmanager
+def database_or_sqlite(tmp_path: Path) -> Iterator[str]:
+    """A fresh PostgreSQL database (``fresh_database``), or a shared SQLite file under ``tmp_path`` when
+    PostgreSQL is down. Yields its SQLAlchemy URL."""
+    if pg_reachable() is not None:
+        yield f"sqlite:///{tmp_path / 'shared.db'}"
+        return
+    with fresh_database() as url:
+        yield url
+
+
+def redis_or_skip(url: str) -> Any:
+    """A client of the Redis at ``url``; skips the test when it does not answer."""
+    import redis
+
+    client = redis.Redis.from_url(url, socket_connect_timeout=2)
+    try:
+        client.ping()
+    except redis.exceptions.ConnectionError as exc:
+        pytest.skip(f"Redis at {url} unreachable: {exc}")
+    return client
+
+
+def stop_group(proc: subprocess.Popen[bytes], grace_s: float = 30) -> None:
+    """SIGTERM ``proc``'s process group (started with ``start_new_session``), SIGKILL after ``grace_s``."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+
+
 # --- a cuttable TCP proxy ---------------------------------------------------------------------------
 
 
