@@ -119,6 +119,7 @@ class FusionConfig:
         ``"tiny"``: a few iterations and a coarse lattice, for tests and smoke runs (seconds on 2 cores)."""
         if name == "cpu":
             return FusionConfig()
+        # the presets are declarative tables of overrides; their similar shapes are deliberate (duplicates)
         if name == "tiny":
             return FusionConfig(
                 iterations=25,

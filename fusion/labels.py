@@ -12,6 +12,7 @@ class Label:
     color: tuple[int, int, int]
 
 
+# the label table: one declarative row per class (the rows' like shapes are deliberate; duplicates)
 LABELS: tuple[Label, ...] = (
     Label(0, "unlabeled", (0, 0, 0)),
     Label(1, "road", (128, 64, 128)),

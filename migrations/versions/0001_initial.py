@@ -19,6 +19,7 @@ depends_on: str | Sequence[str] | None = None
 
 
 def upgrade() -> None:
+    # a frozen, declarative schema snapshot (Alembic): its like table shapes are deliberate (duplicates)
     op.create_table(
         "sessions",
         sa.Column("session_id", sa.String(length=255), nullable=False),

@@ -531,6 +531,8 @@ def test_fused_ply_properties_and_round_trip() -> None:
     ply = plyfile.PlyData.read(io.BytesIO(data))
     assert not ply.text and ply.byte_order == "<"
     vertex, face = ply["vertex"], ply["face"]
+    # the fused PLY's vertex layout spelled out again on purpose: the test pins the wire format, so it
+    # must not read it from fusion.meshio (duplicates: deliberate)
     assert [(p.name, p.val_dtype) for p in vertex.properties] == [
         ("x", "f4"),
         ("y", "f4"),
