@@ -263,6 +263,37 @@ def fleetmap_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "service.cli", *args]
 
 
+def celery_worker_env(settings: Any, broker_url: str, drop: tuple[str, ...] = ("FLEETMAP_",), **extra: str) -> dict[str, str]:
+    """The environment of a ``fleetmap worker`` process serving ``settings`` (its database, data folder and
+    queue) through ``broker_url``, tiny preset, 60 s leases: this process's environment without the
+    variables starting with ``drop``, plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(drop)}
+    env.update(
+        FLEETMAP_BROKER_URL=broker_url,
+        FLEETMAP_DATABASE_URL=settings.database_url,
+        FLEETMAP_DATA_DIR=str(settings.data_dir),
+        FLEETMAP_FUSION_QUEUE=settings.fusion_queue,
+        FLEETMAP_FUSION_PRESET="tiny",
+        FLEETMAP_LEASE_S="60",
+        **extra,
+    )
+    return env
+
+
+def spawn_celery_worker(env: dict[str, str], log_path: Path, *args: str) -> subprocess.Popen[bytes]:
+    """``fleetmap worker --concurrency 1 --loglevel info *args`` in its own process group, logging to
+    ``log_path``; stop it with ``stop_group``."""
+    with open(log_path, "wb") as log:
+        return subprocess.Popen(
+            fleetmap_cmd("worker", "--concurrency", "1", "--loglevel", "info", *args),
+            cwd=REPO,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+
 def run_cli(env: dict[str, str], *args: str, timeout_s: float = 120) -> str:
     """Run one ``fleetmap`` command to completion; returns stdout, fails the test on error."""
     done = subprocess.run(

@@ -9,8 +9,6 @@ only when Redis is unreachable (CI starts both). Each run uses its own queue and
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
 from datetime import timedelta
@@ -21,7 +19,13 @@ import pytest
 
 from service import schedule as scheduler
 from service.store.models import FusionJob
-from tests.production_support import database_or_sqlite, redis_or_skip, stop_group
+from tests.production_support import (
+    celery_worker_env,
+    database_or_sqlite,
+    redis_or_skip,
+    spawn_celery_worker,
+    stop_group,
+)
 from tests.worker_support import api, make_settings, session_factory, tile_fused, upload, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
@@ -44,26 +48,9 @@ def celery_env(tmp_path: Path, database_url: str) -> Iterator[dict[str, Any]]:
     settings = make_settings(
         tmp_path, broker_url=REDIS_URL, fusion_queue=queue, database_url=database_url, fuse_debounce_s=1.0
     )
-    env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")}
-    env.update(
-        FLEETMAP_BROKER_URL=REDIS_URL,
-        FLEETMAP_DATABASE_URL=database_url,
-        FLEETMAP_DATA_DIR=str(settings.data_dir),
-        FLEETMAP_FUSION_QUEUE=queue,
-        FLEETMAP_FUSION_PRESET="tiny",
-        FLEETMAP_LEASE_S="60",
-    )
     log_path = tmp_path / "worker.log"
     with api(settings) as client:  # migrates the database before the worker starts
-        with open(log_path, "wb") as log:
-            worker = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "worker", "--concurrency", "1", "--loglevel", "info"],
-                cwd=REPO,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
+        worker = spawn_celery_worker(celery_worker_env(settings, REDIS_URL), log_path)
         try:
             yield {"client": client, "settings": settings, "worker": worker, "log": log_path}
         finally:

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import os
 import socket
-import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,7 +19,13 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from tests.production_support import database_or_sqlite, redis_or_skip, stop_group
+from tests.production_support import (
+    celery_worker_env,
+    database_or_sqlite,
+    redis_or_skip,
+    spawn_celery_worker,
+    stop_group,
+)
 from tests.worker_support import api, make_settings, upload, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
@@ -58,27 +62,10 @@ def worker_env(tmp_path: Path) -> Iterator[dict[str, Any]]:
     port = _free_port()
     with database_or_sqlite(tmp_path) as database_url:
         settings = make_settings(tmp_path, broker_url=REDIS_URL, fusion_queue=queue, database_url=database_url)
-        env = {k: v for k, v in os.environ.items() if not k.startswith(("FLEETMAP_", "PROMETHEUS_"))}
-        env.update(
-            FLEETMAP_BROKER_URL=REDIS_URL,
-            FLEETMAP_DATABASE_URL=database_url,
-            FLEETMAP_DATA_DIR=str(settings.data_dir),
-            FLEETMAP_FUSION_QUEUE=queue,
-            FLEETMAP_FUSION_PRESET="tiny",
-            FLEETMAP_LEASE_S="60",
-            FLEETMAP_TORCH_THREADS="1",
-        )
+        env = celery_worker_env(settings, REDIS_URL, drop=("FLEETMAP_", "PROMETHEUS_"), FLEETMAP_TORCH_THREADS="1")
         log_path = tmp_path / "worker.log"
-        with api(settings) as client, open(log_path, "wb") as log:
-            worker = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "worker", "--concurrency", "1", "--loglevel", "info",
-                 "--metrics-port", str(port)],
-                cwd=REPO,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
+        with api(settings) as client:
+            worker = spawn_celery_worker(env, log_path, "--metrics-port", str(port))
             try:
                 yield {"client": client, "proc": worker, "log": log_path,
                        "metrics_url": f"http://127.0.0.1:{port}/metrics"}
