@@ -28,6 +28,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_PG_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
+TEST_REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", DEFAULT_REDIS_URL)  # the Celery tests' broker
 
 
 def free_port() -> int:

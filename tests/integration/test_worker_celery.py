@@ -8,7 +8,6 @@ only when Redis is unreachable (CI starts both). Each run uses its own queue and
 
 from __future__ import annotations
 
-import os
 import uuid
 from collections.abc import Iterator
 from datetime import timedelta
@@ -20,6 +19,9 @@ import pytest
 from service import schedule as scheduler
 from service.store.models import FusionJob
 from tests.production_support import (
+    TEST_REDIS_URL as REDIS_URL,
+)
+from tests.production_support import (
     celery_worker_env,
     database_or_sqlite,
     redis_or_skip,
@@ -27,9 +29,6 @@ from tests.production_support import (
     stop_group,
 )
 from tests.worker_support import api, make_settings, session_factory, tile_fused, upload, wait_for
-
-REPO = Path(__file__).resolve().parents[2]
-REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

@@ -8,7 +8,6 @@ PostgreSQL is down); skipped only when Redis is unreachable.
 
 from __future__ import annotations
 
-import os
 import socket
 import uuid
 from collections.abc import Iterator
@@ -19,6 +18,10 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+# the same helpers as test_worker_celery (a shared import list, not a repeat; duplicates)
+from tests.production_support import (
+    TEST_REDIS_URL as REDIS_URL,
+)
 from tests.production_support import (
     celery_worker_env,
     database_or_sqlite,
@@ -27,9 +30,6 @@ from tests.production_support import (
     stop_group,
 )
 from tests.worker_support import api, make_settings, upload, wait_for
-
-REPO = Path(__file__).resolve().parents[2]
-REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
