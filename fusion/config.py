@@ -117,9 +117,9 @@ class FusionConfig:
     def preset(name: str = "cpu") -> FusionConfig:
         """``"cpu"``: 64 m tiles on 2 CPU cores in about a minute; ``"paper"``: the paper's sizes (GPU);
         ``"tiny"``: a few iterations and a coarse lattice, for tests and smoke runs (seconds on 2 cores)."""
-        # Each preset is a declarative list of overrides; they look alike on purpose (duplicates: deliberate).
         if name == "cpu":
             return FusionConfig()
+        # the presets are declarative tables of overrides; their similar shapes are deliberate (duplicates)
         if name == "tiny":
             return FusionConfig(
                 iterations=25,

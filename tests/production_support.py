@@ -28,6 +28,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_PG_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
+TEST_REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", DEFAULT_REDIS_URL)  # the Celery tests' broker
 
 
 def free_port() -> int:
@@ -131,6 +132,40 @@ class RedisServer:
         self.proc = None
 
 
+@contextlib.contextmanager
+def database_or_sqlite(tmp_path: Path) -> Iterator[str]:
+    """A fresh PostgreSQL database (``fresh_database``), or a shared SQLite file under ``tmp_path`` when
+    PostgreSQL is down. Yields its SQLAlchemy URL."""
+    if pg_reachable() is not None:
+        yield f"sqlite:///{tmp_path / 'shared.db'}"
+        return
+    with fresh_database() as url:
+        yield url
+
+
+def redis_or_skip(url: str) -> Any:
+    """A client of the Redis at ``url``; skips the test when it does not answer."""
+    import redis
+
+    client = redis.Redis.from_url(url, socket_connect_timeout=2)
+    try:
+        client.ping()
+    except redis.exceptions.ConnectionError as exc:
+        pytest.skip(f"Redis at {url} unreachable: {exc}")
+    return client
+
+
+def stop_group(proc: subprocess.Popen[bytes], grace_s: float = 30) -> None:
+    """SIGTERM ``proc``'s process group (started with ``start_new_session``), SIGKILL after ``grace_s``."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+
+
 # --- a cuttable TCP proxy ---------------------------------------------------------------------------
 
 
@@ -227,6 +262,37 @@ class TcpProxy:
 def fleetmap_cmd(*args: str) -> list[str]:
     """The ``fleetmap`` CLI as a command line (works without the console script being installed)."""
     return [sys.executable, "-m", "service.cli", *args]
+
+
+def celery_worker_env(settings: Any, broker_url: str, drop: tuple[str, ...] = ("FLEETMAP_",), **extra: str) -> dict[str, str]:
+    """The environment of a ``fleetmap worker`` process serving ``settings`` (its database, data folder and
+    queue) through ``broker_url``, tiny preset, 60 s leases: this process's environment without the
+    variables starting with ``drop``, plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(drop)}
+    env.update(
+        FLEETMAP_BROKER_URL=broker_url,
+        FLEETMAP_DATABASE_URL=settings.database_url,
+        FLEETMAP_DATA_DIR=str(settings.data_dir),
+        FLEETMAP_FUSION_QUEUE=settings.fusion_queue,
+        FLEETMAP_FUSION_PRESET="tiny",
+        FLEETMAP_LEASE_S="60",
+        **extra,
+    )
+    return env
+
+
+def spawn_celery_worker(env: dict[str, str], log_path: Path, *args: str) -> subprocess.Popen[bytes]:
+    """``fleetmap worker --concurrency 1 --loglevel info *args`` in its own process group, logging to
+    ``log_path``; stop it with ``stop_group``."""
+    with open(log_path, "wb") as log:
+        return subprocess.Popen(
+            fleetmap_cmd("worker", "--concurrency", "1", "--loglevel", "info", *args),
+            cwd=REPO,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
 
 
 def run_cli(env: dict[str, str], *args: str, timeout_s: float = 120) -> str:
@@ -441,15 +507,18 @@ def deployment(tmp_path: Path, broker_url: str | None = None, **settings: str) -
 IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
 
 
-def submap_meta(session: str, seq: int, t: list[float], agent: str | None = None) -> dict[str, Any]:
-    """Upload meta of submap ``seq`` of ``session`` at map-frame translation ``t`` (identity rotation)."""
+def submap_meta(
+    session: str, seq: int, t: list[float], agent: str | None = None, gps_sigma: float = 1.0
+) -> dict[str, Any]:
+    """Upload meta of submap ``seq`` of ``session`` at map-frame translation ``t`` (identity rotation),
+    GPS sigma ``gps_sigma`` (m and deg); the agent defaults to the session's first path segment."""
     return {
         "agent_id": agent or session.split("/")[0],
         "session_id": session,
         "seq": seq,
         "captured_at": "2026-11-24T08:00:00Z",
         "gps": {"pose": {"t": t, "q": IDENTITY_Q}},
-        "gps_sigma": {"trans_m": 1.0, "rot_deg": 1.0},
+        "gps_sigma": {"trans_m": gps_sigma, "rot_deg": gps_sigma},
         "odometry": {"t": [float(seq), 0.0, 0.0], "q": IDENTITY_Q},
     }
 

@@ -19,9 +19,8 @@ from fusion.meshio import write_submap_ply
 from fusion.types import FusedMesh, FusionResult, Pose, SubmapInput, TileSpec
 from service.api.app import create_app
 from service.settings import Settings
+from tests.production_support import submap_meta
 from tests.scene import street
-
-IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
 
 
 def make_settings(tmp_path: Path, **overrides: Any) -> Settings:
@@ -77,15 +76,7 @@ def upload(
     client: Any, session: str, seq: int, t: list[float], *, agent: str = "veh-1", mesh: bytes | None = None
 ) -> dict[str, Any]:
     """POST one submap of ``session`` at map-frame translation ``t`` (identity rotation); returns the body."""
-    meta = {
-        "agent_id": agent,
-        "session_id": session,
-        "seq": seq,
-        "captured_at": "2026-11-24T08:00:00Z",
-        "gps": {"pose": {"t": t, "q": IDENTITY_Q}},
-        "gps_sigma": {"trans_m": 2.0, "rot_deg": 2.0},
-        "odometry": {"t": [float(seq), 0.0, 0.0], "q": IDENTITY_Q},
-    }
+    meta = submap_meta(session, seq, t, agent, gps_sigma=2.0)
     files = {
         "meta": (None, json.dumps(meta), "application/json"),
         "mesh": ("submap.ply", mesh or mesh_bytes(), "application/octet-stream"),

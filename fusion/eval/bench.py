@@ -4,7 +4,7 @@ the one-tile bench (``--tiles 1``); the default multi-tile bench is ``fusion.eva
 
 Rows are functions ``row_*(ctx) -> dict`` registered in ``ROWS``; to add an ablation, write one more
 function (e.g. fuse with a changed ``FusionConfig``) and register it. ``evaluate_mesh`` turns a fused
-mesh into the reconstruction figures, ``pose_figures`` refined poses into the pose figures.
+mesh into the reconstruction figures (``fusion.eval.scoring``), ``pose_figures`` refined poses into the pose figures.
 
 Gauge. GPS fixes the map's absolute placement only to the mean of the sessions' GPS errors (σ/√n, a
 few decimetres), which is unobservable from the data and larger than the F-score distance d = 0.2 m.
@@ -30,27 +30,24 @@ from __future__ import annotations
 
 import json
 import operator
-import resource
-import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from scipy.spatial import cKDTree
+from fusion.eval import metrics, scoring
+from fusion.eval.bench_context import TILE, TILE_SIZE, BenchContext, fmt, peak_memory, prepare
+from fusion.eval.scoring import ABS_KEYS, Gauge
+from fusion.eval.synth.simulate import simulate
+from fusion.offline import fuse_tiles
+from fusion.tiles import tile_bounds
+from fusion.types import FusedMesh, Pose
 
-from fusion.eval import metrics
-from fusion.eval.synth.simulate import GroundTruth, load_ground_truth, simulate
-from fusion.labels import LABELS
-from fusion.offline import LoadedSubmap, fuse_tiles, load_directory
-from fusion.types import FusedMesh, Pose, rotation_angle_deg
+__all__ = ["ABS_KEYS", "ROWS", "TILE", "TILE_SIZE", "BenchContext", "evaluate_both", "evaluate_mesh",
+           "gauge_transform", "pose_figures", "prepare", "run_bench"]
 
-TILE = (0, 0)
-TILE_SIZE = 64.0
 D = metrics.DEFAULT_D
 
 # what the bench must be able to show (the fusion is tuned elsewhere; the bench only reports)
@@ -60,100 +57,27 @@ TARGETS = {
 }
 
 
-@dataclass
-class BenchContext:
-    """Everything a row needs: the simulated uploads, the truth (as point sets, map frame) and the config."""
-
-    config: Any
-    submaps: list[LoadedSubmap]
-    truth: GroundTruth
-    region: metrics.Region
-    gt_all: metrics.PointSet
-    gt_observed: metrics.PointSet
-    transient: metrics.PointSet
-    rows: dict[str, dict[str, Any]] = field(default_factory=dict)
-    tile_size: float = TILE_SIZE
-
-    @property
-    def home(self) -> list[LoadedSubmap]:
-        return [s for s in self.submaps if s.home == TILE]
+def evaluate_mesh(ctx: BenchContext, mesh: FusedMesh, align: Gauge | None = None) -> dict[str, Any]:
+    """``scoring.score_mesh`` on the bench's truth: figures of a fused mesh moved by ``align`` if given."""
+    return scoring.score_mesh(ctx.points, mesh, align)
 
 
-def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY,
-            tile_size: float = TILE_SIZE, region: metrics.Region | None = None) -> BenchContext:
-    """Load the uploads the way the offline path does, and the truth cropped to ``region`` (default the
-    benchmark tile (0, 0), ``tile_size`` metres)."""
-    submaps = load_directory(sim_dir, tile_size)
-    truth = load_ground_truth(sim_dir)
-    lo = (TILE[0] * tile_size, TILE[1] * tile_size)
-    region = region or (lo, (lo[0] + tile_size, lo[1] + tile_size))
-    gt = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=2), region)
-    obs = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=3,
-                                              face_mask=truth.observed), region)
-    tr = metrics.crop(metrics.sample_surface(truth.transient_vertices, truth.transient_faces, truth.transient_labels,
-                                             density, seed=4, face_mask=truth.transient_observed), region)
-    # only the parts of transient objects that stand clear of the static world can be told apart
-    if len(tr) and len(gt):
-        dist, _ = cKDTree(gt.points).query(tr.points, distance_upper_bound=2 * D)
-        tr = tr.subset(dist > 2 * D)
-    return BenchContext(config, submaps, truth, region, gt, obs, tr, tile_size=tile_size)
+def gauge_transform(ctx: BenchContext, poses: dict[str, Pose]) -> Gauge:
+    """Rigid gauge (``scoring.submap_gauge``) over every submap the tile's fusion used (refined poses from
+    ``poses``, the others at the GPS pose they were held at)."""
+    return scoring.submap_gauge([s for s in ctx.submaps if TILE in s.tiles], poses, ctx.truth.poses)
 
 
-def evaluate_mesh(ctx: BenchContext, mesh: FusedMesh,
-                  align: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
-    """Geometric P/R/F, mean semantic F (per class too) and surviving transient share of a fused mesh,
-    after moving it by the rigid ``align`` = (R, t) (map frame, ``x ↦ R x + t``) if given."""
-    pred = metrics.sample_surface(mesh.vertices, mesh.faces, mesh.face_labels, seed=1)
-    if align is not None:
-        pred = metrics.transform_points(pred, *align)
-    pred = metrics.crop(pred, ctx.region)
-    p, r, f = metrics.geometric_prf(pred, ctx.gt_all, D, ctx.region, ctx.gt_observed)
-    sem, per_class = metrics.semantic_f1(pred, ctx.gt_all, D, ctx.region, ctx.gt_observed)
-    survive = None
-    if len(ctx.transient) and len(pred):
-        dist, _ = cKDTree(pred.points).query(ctx.transient.points, distance_upper_bound=D)
-        survive = float(np.mean(dist <= D))
-    return {"geo_p": p, "geo_r": r, "geo_f": f, "sem_f": sem, "transient_survival": survive,
-            "per_class_f": {LABELS[k].name: v[2] for k, v in per_class.items()}, "faces": int(len(mesh.faces))}
+def evaluate_both(ctx: BenchContext, mesh: FusedMesh, poses: dict[str, Pose] | None) -> dict[str, Any]:
+    """Gauge-aligned figures (plain keys), absolute map-frame figures (``abs_`` keys) and the gauge's size
+    at the tile centre; see the module docstring. ``poses`` None: fused at the true poses (identity)."""
+    gauge = gauge_transform(ctx, poses) if poses is not None else None
+    return scoring.score_aligned_and_absolute(ctx.points, mesh, gauge, tile_bounds(*TILE, ctx.tile_size))
 
 
-ABS_KEYS = ("geo_p", "geo_r", "geo_f", "sem_f", "transient_survival", "per_class_f")
-
-
-def gauge_transform(ctx: BenchContext, poses: dict[str, Pose], anchors_per_submap: int = 64,
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid (R, t) taking the fused map's gauge to the truth's: Umeyama over every submap the tile's
-    fusion used (home submaps at their refined pose from ``poses``, the others at the GPS pose they
-    were held at), each represented by ``anchors_per_submap`` of its vertices (local frame)."""
-    used = [s for s in ctx.submaps if TILE in s.tiles]
-    est = [poses.get(s.input.id, s.pose_gps) for s in used]
-    true = [ctx.truth.poses[s.input.id] for s in used]
-    anchors = []
-    for s in used:
-        v = np.asarray(s.input.mesh.vertices, np.float64)
-        anchors.append(v[np.linspace(0, len(v) - 1, min(anchors_per_submap, len(v))).astype(int)])
-    return metrics.gauge_alignment(est, true, anchors)
-
-
-def evaluate_both(ctx: BenchContext, mesh: FusedMesh, poses: dict[str, Pose]) -> dict[str, Any]:
-    """Gauge-aligned figures (plain keys) and absolute map-frame figures (``abs_`` keys); see the module
-    docstring."""
-    r, t = gauge_transform(ctx, poses)
-    aligned = evaluate_mesh(ctx, mesh, (r, t))
-    absolute = evaluate_mesh(ctx, mesh)
-    centre = np.array([(TILE[0] + 0.5) * ctx.tile_size, (TILE[1] + 0.5) * ctx.tile_size, 0.0])
-    angle = float(rotation_angle_deg(r))
-    return aligned | {f"abs_{k}": absolute[k] for k in ABS_KEYS} | {
-        "gauge_m": float(np.linalg.norm(r @ centre + t - centre)), "gauge_deg": angle}
-
-
-def pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, float]:
+def pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, Any]:
     """Pose RMSE (m, deg) of the tile's home submaps after rigid alignment to the truth."""
-    home = [s for s in ctx.home if s.input.id in poses]
-    if not home:
-        return {}
-    t, r = metrics.pose_rmse([poses[s.input.id] for s in home], [ctx.truth.poses[s.input.id] for s in home])
-    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(home)}
+    return scoring.pose_figures(ctx.home, poses, ctx.truth.poses)
 
 
 def _fuse(ctx: BenchContext, fixed: dict[str, Pose] | None = None) -> tuple[dict[str, Any], Any]:
@@ -180,22 +104,10 @@ def row_oracle(ctx: BenchContext) -> dict[str, Any]:
     """Same fusion with every submap held at its true pose (no pose optimisation): already in the true
     gauge, so the absolute figures are the aligned ones."""
     out, res = _fuse(ctx, fixed=dict(ctx.truth.poses))
-    figs = evaluate_mesh(ctx, res.mesh)
-    return figs | {f"abs_{k}": figs[k] for k in ABS_KEYS} | {"gauge_m": 0.0, "gauge_deg": 0.0} | out
+    return evaluate_both(ctx, res.mesh, None) | out
 
 
 ROWS: dict[str, Callable[[BenchContext], dict[str, Any]]] = {"gps": row_gps, "fused": row_fused, "oracle": row_oracle}
-
-
-def _peak_memory() -> dict[str, float | None]:
-    rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    gpu = None
-    if "torch" in sys.modules:
-        import torch
-
-        if torch.cuda.is_available():
-            gpu = torch.cuda.max_memory_allocated() / 2**20
-    return {"peak_rss_mib": rss_mib, "peak_gpu_mib": gpu}
 
 
 def check_targets(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -217,10 +129,6 @@ def check_targets(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def _fmt(v: Any, spec: str = ".3f") -> str:
-    return "-" if v is None else format(v, spec)
-
-
 def format_table(report: dict[str, Any]) -> str:
     cols = [("geo P", "geo_p", ".3f"), ("geo R", "geo_r", ".3f"), ("geo F", "geo_f", ".3f"), ("sem F", "sem_f", ".3f"),
             ("abs geo F", "abs_geo_f", ".3f"), ("abs sem F", "abs_sem_f", ".3f"),
@@ -228,7 +136,7 @@ def format_table(report: dict[str, Any]) -> str:
             ("transient", "transient_survival", ".1%"), ("wall s", "wall_s", ".1f"), ("cpu s", "cpu_s", ".1f"), ("pts/s", "points_per_s", ".3g")]
     lines = [f"{'row':<8}" + "".join(f"{c[0]:>11}" for c in cols)]
     for name, row in report["rows"].items():
-        lines.append(f"{name:<8}" + "".join(f"{_fmt(row.get(k), s):>11}" for _, k, s in cols))
+        lines.append(f"{name:<8}" + "".join(f"{fmt(row.get(k), s):>11}" for _, k, s in cols))
     lines.append("geo P/R/F, sem F, transient: gauge-aligned (fused mesh moved by the rigid Umeyama fit of its "
                  "submaps' fused poses to their true poses; oracle: identity); abs geo F / abs sem F: "
                  "absolute map frame. Pose RMSE after rigid alignment.")
@@ -247,7 +155,7 @@ def format_table(report: dict[str, Any]) -> str:
                  f"{report['sessions']}, preset {report['preset']}, seed {report['seed']}, simulate {report['simulate_s']:.1f} s")
     for name, t in report["targets"].items():
         mark = {True: "ok", False: "MISSED", None: "n/a"}[t["met"]]
-        lines.append(f"  target {name:<24} {_fmt(t['value'])} (target {t['target']}) {mark}")
+        lines.append(f"  target {name:<24} {fmt(t['value'])} (target {t['target']}) {mark}")
     return "\n".join(lines)
 
 
@@ -278,7 +186,7 @@ def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, fl
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise),
               "vertex_noise_m": vertex_noise_m if vertex_noise_m is not None else FleetParams().vertex_noise_m, "simulate_s": sim_s,
               "submaps": len(ctx.submaps), "home_submaps": len(ctx.home), "tile": list(TILE), "tile_size_m": size, "d_m": D,
-              "rows": ctx.rows, "memory": _peak_memory(), "config": cfg.to_dict()}
+              "rows": ctx.rows, "memory": peak_memory(), "config": cfg.to_dict()}
     report["targets"] = check_targets(ctx.rows)
     out(format_table(report))
     if json_path is not None:

@@ -22,16 +22,16 @@ import json
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fusion.eval import metrics
-from fusion.eval.bench import ABS_KEYS, BenchContext, _fmt, _peak_memory, evaluate_mesh, prepare
+from fusion.eval import scoring
+from fusion.eval.bench_context import BenchContext, fmt, peak_memory, prepare
 from fusion.offline import fuse_tiles
+from fusion.tiles import tile_bounds
 from fusion.types import FusedMesh, FusionResult, Pose
 
 TARGETS = {"geo_f": 0.92, "sem_f": 0.80, "pose_trans_m": 0.10, "pose_rot_deg": 0.2}
@@ -86,47 +86,21 @@ def seam_gaps(results: dict[tuple[int, int], FusionResult], tile_size: float, vo
 
 
 def _pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, Any]:
-    used = [s for s in ctx.submaps if s.input.id in poses]
-    if not used:
-        return {}
-    t, r = metrics.pose_rmse([poses[s.input.id] for s in used], [ctx.truth.poses[s.input.id] for s in used])
-    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(used)}
-
-
-def _gauge(ctx: BenchContext, poses: dict[str, Pose], anchors_per_submap: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid (R, t) from the fused map's gauge to the truth's, over every submap (poses only)."""
-    est = [poses.get(s.input.id, s.pose_gps) for s in ctx.submaps]
-    true = [ctx.truth.poses[s.input.id] for s in ctx.submaps]
-    anchors = []
-    for s in ctx.submaps:
-        v = np.asarray(s.input.mesh.vertices, np.float64)
-        anchors.append(v[np.linspace(0, len(v) - 1, min(anchors_per_submap, len(v))).astype(int)])
-    return metrics.gauge_alignment(est, true, anchors)
-
-
-def _crop_ctx(ctx: BenchContext, region: metrics.Region) -> BenchContext:
-    return replace(ctx, region=region, gt_all=metrics.crop(ctx.gt_all, region),
-                   gt_observed=metrics.crop(ctx.gt_observed, region), transient=metrics.crop(ctx.transient, region),
-                   rows={})
+    """Pose RMSE (m, deg) of every submap with a pose in ``poses`` after rigid alignment to the truth."""
+    return scoring.pose_figures(ctx.submaps, poses, ctx.truth.poses)
 
 
 def evaluate_region(ctx: BenchContext, results: dict[tuple[int, int], FusionResult], poses: dict[str, Pose] | None,
                     ) -> dict[str, Any]:
-    """Whole-map (gauge-aligned and absolute) and per-tile figures; ``poses`` None: already in the true gauge."""
-    align = _gauge(ctx, poses) if poses is not None else (np.eye(3), np.zeros(3))
+    """Whole-map (gauge-aligned and absolute) and per-tile figures; ``poses`` None: already in the true
+    gauge. The gauge is fitted over every submap (poses only)."""
+    gauge = scoring.submap_gauge(ctx.submaps, poses, ctx.truth.poses) if poses is not None else None
     whole = merge_meshes([r.mesh for r in results.values()])
-    out = evaluate_mesh(ctx, whole, align)
-    absolute = evaluate_mesh(ctx, whole) if poses is not None else out
-    (x0, y0), (x1, y1) = ctx.region
-    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
-    r, t = align
-    out |= {f"abs_{k}": absolute[k] for k in ABS_KEYS}
-    out |= {"gauge_m": float(np.linalg.norm(r @ centre + t - centre)),
-            "gauge_deg": float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))}
+    out = scoring.score_aligned_and_absolute(ctx.points, whole, gauge)
     per_tile = {}
     for (i, j), res in sorted(results.items()):
-        s = ctx.tile_size
-        figs = evaluate_mesh(_crop_ctx(ctx, ((i * s, j * s), ((i + 1) * s, (j + 1) * s))), res.mesh, align)
+        tile = ctx.points.cropped(tile_bounds(i, j, ctx.tile_size))
+        figs = scoring.score_mesh(tile, res.mesh, gauge)
         per_tile[f"{i}_{j}"] = {k: figs[k] for k in ("geo_p", "geo_r", "geo_f", "sem_f")} | {
             "recon_s": res.metrics.get("duration_s"), "faces": figs["faces"]}
     out["per_tile"] = per_tile
@@ -160,18 +134,18 @@ def format_region_table(report: dict[str, Any]) -> str:
             ("wall s", "wall_s", ".0f")]
     lines = [f"{'row':<8}" + "".join(f"{c[0]:>11}" for c in cols)]
     for name, row in report["rows"].items():
-        lines.append(f"{name:<8}" + "".join(f"{_fmt(row.get(k), s):>11}" for _, k, s in cols))
+        lines.append(f"{name:<8}" + "".join(f"{fmt(row.get(k), s):>11}" for _, k, s in cols))
     lines.append("whole core: geo/sem gauge-aligned (rigid Umeyama fit of all submaps' fused poses to the truth); "
                  "pose RMSE after rigid alignment; seam max: widest distance between two tiles' border vertices")
     for name, row in report["rows"].items():
         if "per_tile" not in row:
             continue
         lines.append(f"  {name} per tile (geo F / sem F / recon s):  " + "  ".join(
-            f"{k}: {v['geo_f']:.3f}/{v['sem_f']:.3f}/{_fmt(v['recon_s'], '.0f')}" for k, v in row["per_tile"].items()))
+            f"{k}: {v['geo_f']:.3f}/{v['sem_f']:.3f}/{fmt(v['recon_s'], '.0f')}" for k, v in row["per_tile"].items()))
         if row.get("seam_borders"):
-            lines.append(f"  {name} seams: {row['seam_borders']} borders, max {_fmt(row['seam_max_m'])} m, "
-                         f"p99 {_fmt(row['seam_p99_m'])} m, share > voxel ({row['seam_voxel_m']} m) "
-                         f"{_fmt(row['seam_far_share'], '.2%')}")
+            lines.append(f"  {name} seams: {row['seam_borders']} borders, max {fmt(row['seam_max_m'])} m, "
+                         f"p99 {fmt(row['seam_p99_m'])} m, share > voxel ({row['seam_voxel_m']} m) "
+                         f"{fmt(row['seam_far_share'], '.2%')}")
         if row.get("alignment"):
             a = row["alignment"][0]
             lines.append(f"  {name} alignment: {a['iterations']} steps over {a['num_tiles']} tiles, "
@@ -183,7 +157,7 @@ def format_region_table(report: dict[str, Any]) -> str:
     for key, target in TARGETS.items():
         v = fused.get(key)
         ok = None if v is None else (v >= target if key in ("geo_f", "sem_f") else v <= target)
-        lines.append(f"  target {key:<14} {_fmt(v)} (target {target}) {dict([(True, 'ok'), (False, 'MISSED'), (None, 'n/a')])[ok]}")
+        lines.append(f"  target {key:<14} {fmt(v)} (target {target}) {dict([(True, 'ok'), (False, 'MISSED'), (None, 'n/a')])[ok]}")
     return "\n".join(lines)
 
 
@@ -225,7 +199,7 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
             raise ValueError(f"unknown region bench row {name!r} (known: {', '.join(ROWS)})")
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "tiles": tiles,
               "tile_size_m": size, "simulate_s": sim_s, "submaps": len(ctx.submaps), "rows": report_rows,
-              "memory": _peak_memory(), "config": cfg.to_dict()}
+              "memory": peak_memory(), "config": cfg.to_dict()}
     out(format_region_table(report))
     if json_path is not None:
         Path(json_path).write_text(json.dumps(report, indent=1, default=str))

@@ -71,16 +71,35 @@ def measure_throughput(
     import torch
 
     from fusion.config import FusionConfig
-    from fusion.field import SemanticSDFField
-    from fusion.labels import NUM_CLASSES
-    from fusion.losses import field_losses
-    from fusion.sampling import Batch
 
     if threads is not None:
         torch.set_num_threads(threads)
     tuned = tune_allocator()
     cfg = FusionConfig.preset(preset)
     n = batch or cfg.surface_samples + cfg.space_samples
+    fns, params = _workloads(cfg, n, seed)
+    out: dict[str, Any] = {"preset": preset, "batch": n, "runs": runs, "threads": torch.get_num_threads(),
+                           "torch": torch.__version__, "allocator_tuned": tuned, "load": _load(), "results": {}}
+    for name in workloads:
+        for p in params:
+            p.grad = None
+        out["results"][name] = _median_rate(fns[name], runs, warmup)
+    out["load_after"] = _load()
+    return out
+
+
+def _workloads(cfg: Any, n: int, seed: int) -> tuple[dict[str, Callable[[], int]], list[Any]]:
+    """The timed workloads on a fresh field of a 64 m tile (+ margin, 20 m slab) and ``n`` random points
+    (half of them surface samples), seeded by ``seed``: ``grid`` (feature grid only), ``field`` (grid +
+    heads), ``step`` (the training objective); each returns the points it evaluated. Also the field's
+    parameters (their gradients are reset between workloads)."""
+    import torch
+
+    from fusion.field import SemanticSDFField
+    from fusion.labels import NUM_CLASSES
+    from fusion.losses import field_losses
+    from fusion.sampling import Batch
+
     n_surf = n // 2
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -90,7 +109,6 @@ def measure_throughput(
     x = torch.rand(n, 3, generator=gen) * (hi - lo) + lo  # (n, 3) tile frame
     normals = torch.nn.functional.normalize(torch.randn(n_surf, 3, generator=gen), dim=-1)
     labels = torch.randint(0, NUM_CLASSES, (n_surf,), generator=gen)
-    params = list(field.parameters())
 
     def grid() -> int:
         xg = field.norm(x).requires_grad_(True)
@@ -111,15 +129,7 @@ def measure_throughput(
         sum(terms.values(), start=torch.zeros(())).backward()
         return evaluated
 
-    fns = {"grid": grid, "field": whole, "step": step}
-    out: dict[str, Any] = {"preset": preset, "batch": n, "runs": runs, "threads": torch.get_num_threads(),
-                           "torch": torch.__version__, "allocator_tuned": tuned, "load": _load(), "results": {}}
-    for name in workloads:
-        for p in params:
-            p.grad = None
-        out["results"][name] = _median_rate(fns[name], runs, warmup)
-    out["load_after"] = _load()
-    return out
+    return {"grid": grid, "field": whole, "step": step}, list(field.parameters())
 
 
 def format_throughput(report: dict[str, Any]) -> str:

@@ -18,8 +18,8 @@ branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
 
-# Table definitions are declarative and alike by nature; a shipped migration is never refactored.
 def upgrade() -> None:
+    # a frozen, declarative schema snapshot (Alembic): its like table shapes are deliberate (duplicates)
     op.create_table(
         "sessions",
         sa.Column("session_id", sa.String(length=255), nullable=False),

@@ -236,49 +236,73 @@ def evaluate(
     (``geo``, ``sem_f``: the meshes moved by the rigid fit of every submap's current pose, refined else
     GPS, onto its true pose, over a sample of its vertices; GPS fixes the map's absolute placement only
     to a few decimetres) and in the absolute map frame (``abs_geo``, ``abs_sem_f``); poses: RMSE of GPS
-    and refined poses against the truth (after rigid alignment)."""
-    import numpy as np
+    and refined poses against the truth (after rigid alignment). Scoring: ``fusion.eval.scoring``."""
+    from fusion.eval import scoring
 
-    from fusion.eval import metrics
-    from fusion.meshio import read_fused_ply
+    gauge = _gauge(truth, records, ids, poses)
+    world = scoring.sample_truth(truth, None)
+    rows = [_tile_row(t, plys, jobs, world, gauge, tile_size) for t in tiles]
+    return {"tiles": rows, "poses": _pose_report(truth, records, ids, poses)}
+
+
+def _gauge(
+    truth: Any, records: list[Any], ids: dict[str, str], poses: dict[str, list[dict[str, Any]]]
+) -> Any:
+    """The rigid gauge (R, t) of the served map: every submap's current pose (refined, else GPS) fitted
+    onto its true pose (``scoring.gauge_fit``); None when the server knows no submap's pose."""
+    from fusion.eval import scoring
     from fusion.types import Pose
 
     current = {p["id"]: p.get("pose_refined") or p["pose_gps"] for s in poses.values() for p in s}
     used = [r for r in records if ids.get(r.name) in current]
-    gauge = None
-    if used:
-        anchors = [r.mesh.vertices[np.linspace(0, len(r.mesh.vertices) - 1, 64).astype(int)] for r in used]
-        gauge = metrics.gauge_alignment([Pose.from_json(current[ids[r.name]]) for r in used],
-                                        [truth.poses[r.name] for r in used], anchors)
-    gt_all = metrics.sample_surface(truth.vertices, truth.faces, truth.labels, seed=2)
-    gt_obs = metrics.sample_surface(
-        truth.vertices, truth.faces, truth.labels, seed=3, face_mask=truth.observed
+    if not used:
+        return None
+    return scoring.gauge_fit(
+        [Pose.from_json(current[ids[r.name]]) for r in used],
+        [truth.poses[r.name] for r in used],
+        [r.mesh.vertices for r in used],
     )
-    rows = []
-    for t in tiles:
-        key = (t["i"], t["j"])
-        row: dict[str, Any] = {
-            "tile": key,
-            "state": t["state"],
-            "version": t["version"],
-            "submaps": t["submaps"],
-        }
-        job = jobs.get(key) or {}
-        row["fuse_s"] = (job.get("metrics") or {}).get("duration_s")
-        if key in plys:
-            mesh = read_fused_ply(plys[key])
-            row["faces"] = int(len(mesh.faces))
-            lo = (key[0] * tile_size, key[1] * tile_size)
-            region = (lo, (lo[0] + tile_size, lo[1] + tile_size))
-            if len(mesh.faces):
-                pred = metrics.sample_surface(mesh.vertices, mesh.faces, mesh.face_labels, seed=1)
-                row["abs_geo"] = metrics.geometric_prf(pred, gt_all, metrics.DEFAULT_D, region, gt_obs)
-                row["abs_sem_f"] = metrics.semantic_f1(pred, gt_all, metrics.DEFAULT_D, region, gt_obs)[0]
-                if gauge is not None:
-                    pred = metrics.transform_points(pred, *gauge)
-                row["geo"] = metrics.geometric_prf(pred, gt_all, metrics.DEFAULT_D, region, gt_obs)
-                row["sem_f"] = metrics.semantic_f1(pred, gt_all, metrics.DEFAULT_D, region, gt_obs)[0]
-        rows.append(row)
+
+
+def _tile_row(
+    t: dict[str, Any],
+    plys: dict[tuple[int, int], bytes],
+    jobs: dict[tuple[int, int], dict[str, Any]],
+    world: Any,
+    gauge: Any,
+    tile_size: float,
+) -> dict[str, Any]:
+    """One tile's table row: state, fusion seconds and, when it has a mesh, its figures (absolute and
+    gauge-aligned) against ``world`` (``scoring.TruthPoints``) cropped to the tile."""
+    from fusion.eval import scoring
+    from fusion.meshio import read_fused_ply
+    from fusion.tiles import tile_bounds
+
+    key = (t["i"], t["j"])
+    row: dict[str, Any] = {"tile": key, "state": t["state"], "version": t["version"], "submaps": t["submaps"]}
+    row["fuse_s"] = ((jobs.get(key) or {}).get("metrics") or {}).get("duration_s")
+    if key not in plys:
+        return row
+    mesh = read_fused_ply(plys[key])
+    row["faces"] = int(len(mesh.faces))
+    if len(mesh.faces):
+        truth = world.cropped(tile_bounds(*key, tile_size))
+        absolute = scoring.score_mesh(truth, mesh)
+        aligned = scoring.score_mesh(truth, mesh, gauge) if gauge is not None else absolute
+        row["abs_geo"] = (absolute["geo_p"], absolute["geo_r"], absolute["geo_f"])
+        row["abs_sem_f"] = absolute["sem_f"]
+        row["geo"] = (aligned["geo_p"], aligned["geo_r"], aligned["geo_f"])
+        row["sem_f"] = aligned["sem_f"]
+    return row
+
+
+def _pose_report(
+    truth: Any, records: list[Any], ids: dict[str, str], poses: dict[str, list[dict[str, Any]]]
+) -> dict[str, Any]:
+    """RMSE (m, deg) of the GPS and the refined poses of the refined submaps against the truth."""
+    from fusion.eval import metrics
+    from fusion.types import Pose
+
     refined = {p["id"]: p for session in poses.values() for p in session if p.get("pose_refined")}
     names = [r.name for r in records if ids[r.name] in refined]
     pose_report: dict[str, Any] = {"refined": len(names), "submaps": len(records)}
@@ -290,7 +314,7 @@ def evaluate(
         pose_report["fused"] = metrics.pose_rmse(
             [Pose.from_json(refined[ids[n]]["pose_refined"]) for n in names], true
         )
-    return {"tiles": rows, "poses": pose_report}
+    return pose_report
 
 
 def _f(value: Any, fmt: str = "{:.3f}") -> str:

@@ -8,10 +8,6 @@ only when Redis is unreachable (CI starts both). Each run uses its own queue and
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
 from datetime import timedelta
@@ -22,74 +18,42 @@ import pytest
 
 from service import schedule as scheduler
 from service.store.models import FusionJob
+from tests.production_support import (
+    TEST_REDIS_URL as REDIS_URL,
+)
+from tests.production_support import (
+    celery_worker_env,
+    database_or_sqlite,
+    redis_or_skip,
+    spawn_celery_worker,
+    stop_group,
+)
 from tests.worker_support import api, make_settings, session_factory, tile_fused, upload, wait_for
 
-REPO = Path(__file__).resolve().parents[2]
-REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
-
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
-
-
-def _redis_or_skip() -> Any:
-    import redis
-
-    client = redis.Redis.from_url(REDIS_URL, socket_connect_timeout=2)
-    try:
-        client.ping()
-    except redis.exceptions.ConnectionError as exc:
-        pytest.skip(f"Redis at {REDIS_URL} unreachable: {exc}")
-    return client
 
 
 @pytest.fixture
 def database_url(tmp_path: Path) -> Iterator[str]:
     """A fresh PostgreSQL database (a shared SQLite file when PostgreSQL is down)."""
-    from tests.production_support import fresh_database, pg_reachable
-
-    if pg_reachable() is not None:
-        yield f"sqlite:///{tmp_path / 'shared.db'}"
-        return
-    with fresh_database() as url:
+    with database_or_sqlite(tmp_path) as url:
         yield url
 
 
 @pytest.fixture
 def celery_env(tmp_path: Path, database_url: str) -> Iterator[dict[str, Any]]:
-    redis_client = _redis_or_skip()
+    redis_client = redis_or_skip(REDIS_URL)
     queue = f"fleetmap-test-{uuid.uuid4().hex[:10]}"
     settings = make_settings(
         tmp_path, broker_url=REDIS_URL, fusion_queue=queue, database_url=database_url, fuse_debounce_s=1.0
     )
-    env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")}
-    env.update(
-        FLEETMAP_BROKER_URL=REDIS_URL,
-        FLEETMAP_DATABASE_URL=database_url,
-        FLEETMAP_DATA_DIR=str(settings.data_dir),
-        FLEETMAP_FUSION_QUEUE=queue,
-        FLEETMAP_FUSION_PRESET="tiny",
-        FLEETMAP_LEASE_S="60",
-    )
     log_path = tmp_path / "worker.log"
     with api(settings) as client:  # migrates the database before the worker starts
-        with open(log_path, "wb") as log:
-            worker = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "worker", "--concurrency", "1", "--loglevel", "info"],
-                cwd=REPO,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
+        worker = spawn_celery_worker(celery_worker_env(settings, REDIS_URL), log_path)
         try:
             yield {"client": client, "settings": settings, "worker": worker, "log": log_path}
         finally:
-            if worker.poll() is None:
-                os.killpg(worker.pid, signal.SIGTERM)
-                try:
-                    worker.wait(30)
-                except subprocess.TimeoutExpired:
-                    os.killpg(worker.pid, signal.SIGKILL)
-                    worker.wait(10)
+            stop_group(worker)
             redis_client.delete(queue, f"_kombu.binding.{queue}")
 
 

@@ -8,14 +8,9 @@ PostgreSQL is down); skipped only when Redis is unreachable.
 
 from __future__ import annotations
 
-import os
-import signal
 import socket
-import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +18,18 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+# the same helpers as test_worker_celery (a shared import list, not a repeat; duplicates)
+from tests.production_support import (
+    TEST_REDIS_URL as REDIS_URL,
+)
+from tests.production_support import (
+    celery_worker_env,
+    database_or_sqlite,
+    redis_or_skip,
+    spawn_celery_worker,
+    stop_group,
+)
 from tests.worker_support import api, make_settings, upload, wait_for
-
-REPO = Path(__file__).resolve().parents[2]
-REDIS_URL = os.environ.get("FLEETMAP_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -51,64 +54,23 @@ def _value(samples: dict[tuple[str, tuple[tuple[str, str], ...]], float], name: 
     return sum(v for (n, ls), v in samples.items() if n == name and set(labels.items()) <= set(ls))
 
 
-@contextmanager
-def _database(tmp_path: Path) -> Iterator[str]:
-    """A fresh PostgreSQL database (a shared SQLite file when PostgreSQL is down)."""
-    from tests.production_support import fresh_database, pg_reachable
-
-    if pg_reachable() is not None:
-        yield f"sqlite:///{tmp_path / 'shared.db'}"
-        return
-    with fresh_database() as url:
-        yield url
-
-
 @pytest.fixture
 def worker_env(tmp_path: Path) -> Iterator[dict[str, Any]]:
     """The API (in process; it migrates first) and a Celery worker process with a metrics port."""
-    import redis
-
-    redis_client = redis.Redis.from_url(REDIS_URL, socket_connect_timeout=2)
-    try:
-        redis_client.ping()
-    except redis.exceptions.ConnectionError as exc:
-        pytest.skip(f"Redis at {REDIS_URL} unreachable: {exc}")
+    redis_client = redis_or_skip(REDIS_URL)
     queue = f"fleetmap-test-{uuid.uuid4().hex[:10]}"
     port = _free_port()
-    with _database(tmp_path) as database_url:
+    with database_or_sqlite(tmp_path) as database_url:
         settings = make_settings(tmp_path, broker_url=REDIS_URL, fusion_queue=queue, database_url=database_url)
-        env = {k: v for k, v in os.environ.items() if not k.startswith(("FLEETMAP_", "PROMETHEUS_"))}
-        env.update(
-            FLEETMAP_BROKER_URL=REDIS_URL,
-            FLEETMAP_DATABASE_URL=database_url,
-            FLEETMAP_DATA_DIR=str(settings.data_dir),
-            FLEETMAP_FUSION_QUEUE=queue,
-            FLEETMAP_FUSION_PRESET="tiny",
-            FLEETMAP_LEASE_S="60",
-            FLEETMAP_TORCH_THREADS="1",
-        )
+        env = celery_worker_env(settings, REDIS_URL, drop=("FLEETMAP_", "PROMETHEUS_"), FLEETMAP_TORCH_THREADS="1")
         log_path = tmp_path / "worker.log"
-        with api(settings) as client, open(log_path, "wb") as log:
-            worker = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "worker", "--concurrency", "1", "--loglevel", "info",
-                 "--metrics-port", str(port)],
-                cwd=REPO,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
+        with api(settings) as client:
+            worker = spawn_celery_worker(env, log_path, "--metrics-port", str(port))
             try:
                 yield {"client": client, "proc": worker, "log": log_path,
                        "metrics_url": f"http://127.0.0.1:{port}/metrics"}
             finally:
-                if worker.poll() is None:
-                    os.killpg(worker.pid, signal.SIGTERM)
-                    try:
-                        worker.wait(30)
-                    except subprocess.TimeoutExpired:
-                        os.killpg(worker.pid, signal.SIGKILL)
-                        worker.wait(10)
+                stop_group(worker)
                 redis_client.delete(queue, f"_kombu.binding.{queue}")
 
 

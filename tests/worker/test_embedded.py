@@ -14,6 +14,7 @@ import httpx
 import pytest
 
 from fusion.meshio import read_fused_ply
+from service.client.demo import stop_server
 from tests.worker_support import mesh_bytes, upload, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
@@ -65,13 +66,7 @@ def server(tmp_path: Path) -> Any:
             client.log_path = log_path  # type: ignore[attr-defined]
             yield client
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(40)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(10)
+        stop_server(proc)  # as `fleetmap demo` stops it: SIGTERM, SIGKILL to the group if stuck
 
 
 def children_of(pid: int) -> list[int]:

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -142,49 +142,10 @@ def align(submaps: list[SubmapInput], cfg: BaselineConfig) -> tuple[dict[str, Po
     for m in init:
         graph.nodes.append(reg.PoseGraphNode(m))
     # Edge (s, t, T): T maps node s's frame into node t's, i.e. pose_s ≈ pose_t · T.
-    for k, s in enumerate(submaps):
-        info = _information(s.gps_sigma.trans_m, s.gps_sigma.rot_deg)
-        if not s.free:
-            info = np.eye(6) * STIFF_INFORMATION
-        graph.edges.append(reg.PoseGraphEdge(k + 1, 0, init[k], info, uncertain=False))
-    by_session: dict[str, list[int]] = {}
-    for k, s in enumerate(submaps):
-        by_session.setdefault(s.session_id, []).append(k)
-    odometry_edges = 0
-    for members in by_session.values():
-        members.sort(key=lambda k: submaps[k].seq)
-        for a, b in zip(members, members[1:], strict=False):
-            sa, sb = submaps[a], submaps[b]
-            if sb.seq != sa.seq + 1:
-                continue  # a gap in the session: no odometry between these two
-            rel = sb.odometry.inverse().compose(sa.odometry).matrix()
-            info = _information(sa.odometry_sigma.trans_m, sa.odometry_sigma.rot_deg)
-            graph.edges.append(reg.PoseGraphEdge(a + 1, b + 1, rel, info, uncertain=False))
-            odometry_edges += 1
-    loop_edges = 0
-    fitness_sum = 0.0
-    for i, j in pairs:
-        guess = np.linalg.inv(init[j]) @ init[i]
-        transform, info, fitness = _register(local[i], dense[j], guess, cfg)
-        fitness_sum += fitness
-        if fitness < cfg.min_fitness:
-            continue
-        graph.edges.append(reg.PoseGraphEdge(i + 1, j + 1, transform, info, uncertain=True))
-        loop_edges += 1
-
-    option = reg.GlobalOptimizationOption(
-        max_correspondence_distance=cfg.max_correspondence_m[-1],
-        edge_prune_threshold=cfg.edge_prune_threshold,
-        preference_loop_closure=1.0,
-        reference_node=0,
-    )
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        reg.global_optimization(
-            graph,
-            reg.GlobalOptimizationLevenbergMarquardt(),
-            reg.GlobalOptimizationConvergenceCriteria(),
-            option,
-        )
+    _add_prior_edges(graph, submaps, init)
+    odometry_edges = _add_odometry_edges(graph, submaps)
+    loop_edges, fitness_sum = _add_loop_edges(graph, pairs, local, dense, init, cfg)
+    _optimise(graph, cfg)
     # The anchor is the reference node, but re-express relative to it in case the solver moved it.
     anchor_inv = np.linalg.inv(np.asarray(graph.nodes[0].pose))
     poses = {
@@ -199,6 +160,81 @@ def align(submaps: list[SubmapInput], cfg: BaselineConfig) -> tuple[dict[str, Po
         "odometry_edges": odometry_edges,
     }
     return poses, stats
+
+
+def _add_prior_edges(graph: Any, submaps: list[SubmapInput], init: list[np.ndarray]) -> None:
+    """Each submap tied to the anchor (node 0) at its initial (GPS) pose, weighted by its GPS sigma; held
+    submaps (not ``free``) stiffly."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    for k, s in enumerate(submaps):
+        info = _information(s.gps_sigma.trans_m, s.gps_sigma.rot_deg)
+        if not s.free:
+            info = np.eye(6) * STIFF_INFORMATION
+        graph.edges.append(reg.PoseGraphEdge(k + 1, 0, init[k], info, uncertain=False))
+
+
+def _add_odometry_edges(graph: Any, submaps: list[SubmapInput]) -> int:
+    """An edge between consecutive submaps of a session (their relative odometry); returns the count."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    by_session: dict[str, list[int]] = {}
+    for k, s in enumerate(submaps):
+        by_session.setdefault(s.session_id, []).append(k)
+    odometry_edges = 0
+    for members in by_session.values():
+        members.sort(key=lambda k: submaps[k].seq)
+        for a, b in zip(members, members[1:], strict=False):
+            sa, sb = submaps[a], submaps[b]
+            if sb.seq != sa.seq + 1:
+                continue  # a gap in the session: no odometry between these two
+            rel = sb.odometry.inverse().compose(sa.odometry).matrix()
+            info = _information(sa.odometry_sigma.trans_m, sa.odometry_sigma.rot_deg)
+            graph.edges.append(reg.PoseGraphEdge(a + 1, b + 1, rel, info, uncertain=False))
+            odometry_edges += 1
+    return odometry_edges
+
+
+def _add_loop_edges(graph: Any, pairs: list[tuple[int, int]], local: list[np.ndarray], dense: list[np.ndarray],
+                    init: list[np.ndarray], cfg: BaselineConfig) -> tuple[int, float]:
+    """A registration (ICP / GICP) edge per overlapping pair that fits well enough (``min_fitness``);
+    returns (edges added, sum of the fitness over all pairs)."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    loop_edges = 0
+    fitness_sum = 0.0
+    for i, j in pairs:
+        guess = np.linalg.inv(init[j]) @ init[i]
+        transform, info, fitness = _register(local[i], dense[j], guess, cfg)
+        fitness_sum += fitness
+        if fitness < cfg.min_fitness:
+            continue
+        graph.edges.append(reg.PoseGraphEdge(i + 1, j + 1, transform, info, uncertain=True))
+        loop_edges += 1
+    return loop_edges, fitness_sum
+
+
+def _optimise(graph: Any, cfg: BaselineConfig) -> None:
+    """Levenberg-Marquardt over the pose graph, the anchor (node 0) as reference; prunes bad loop edges."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=cfg.max_correspondence_m[-1],
+        edge_prune_threshold=cfg.edge_prune_threshold,
+        preference_loop_closure=1.0,
+        reference_node=0,
+    )
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(
+            graph,
+            reg.GlobalOptimizationLevenbergMarquardt(),
+            reg.GlobalOptimizationConvergenceCriteria(),
+            option,
+        )
 
 
 def reconstruct(

@@ -87,8 +87,24 @@ def _part(mesh: shapes.Mesh, label: str, kind: str, rect=None, occluder: bool = 
 def make_object(world: World, kind: str, xy: np.ndarray, yaw: float, rng: np.random.Generator,
                 occ: Occupancy, session: int | None = None) -> list[Part]:
     """Try to place one object of ``kind`` centred at xy (map frame); returns its parts or []."""
-    me = world.params.max_edge
+    rect, ground, size = _footprint(kind, xy, yaw, rng)
+    if not occ.fits(rect, ground):
+        return []
+    occ.occupy(rect)
+    parts = _object_parts(world, kind, np.asarray(xy, float), yaw, rect, size, rng)
+    for p in parts:
+        p.session = session
+    return parts
+
+
+# The two functions below are declarative tables of the object kinds (one branch per kind: its
+# footprint and allowed ground, then its shapes); they stay one branch per kind, whatever their length.
+def _footprint(kind: str, xy: np.ndarray, yaw: float, rng: np.random.Generator,
+               ) -> tuple[tuple[float, float, float, float, float], set[int], tuple[float, ...]]:
+    """Footprint rectangle (x, y, half length, half width, yaw; map frame, metres), the ground labels it
+    may stand on, and its drawn size (length, width, height; trees and bushes: (radius,))."""
     walk = {L["sidewalk"], L["terrain"]}
+    size: tuple[float, ...] = ()
     if kind == "building":
         size = (rng.uniform(8, 18), rng.uniform(6, 12), rng.uniform(5, 14))
         rect, ground = (xy[0], xy[1], size[0] / 2, size[1] / 2, yaw), {L["terrain"]}
@@ -97,6 +113,7 @@ def make_object(world: World, kind: str, xy: np.ndarray, yaw: float, rng: np.ran
         rect, ground = (xy[0], xy[1], size[0] / 2, 0.05, yaw), {L["terrain"]}
     elif kind in ("tree", "bush"):
         r = rng.uniform(1.4, 2.6) if kind == "tree" else rng.uniform(0.8, 1.6)
+        size = (r,)
         rect, ground = (xy[0], xy[1], r, r, 0.0), {L["terrain"]}
     elif kind in ("pole", "sign"):
         rect, ground = (xy[0], xy[1], 0.35, 0.35, yaw), walk
@@ -108,11 +125,15 @@ def make_object(world: World, kind: str, xy: np.ndarray, yaw: float, rng: np.ran
         rect, ground = (xy[0], xy[1], size[0] / 2, size[1] / 2, yaw), {L["road"], L["sidewalk"]}
     else:
         raise ValueError(f"unknown object kind {kind!r}")
-    if not occ.fits(rect, ground):
-        return []
-    occ.occupy(rect)
+    return rect, ground, size
+
+
+def _object_parts(world: World, kind: str, c: np.ndarray, yaw: float, rect: tuple[float, float, float, float, float],
+                  size: tuple[float, ...], rng: np.random.Generator) -> list[Part]:
+    """The parts (meshes, map frame) of an object of ``kind`` at ``c`` standing on the ground under ``rect``."""
+    me = world.params.max_edge
     z0 = _min_ground(world, rect)
-    c = np.asarray(xy, float)
+    r = size[0] if kind in ("tree", "bush") else 0.0
     if kind == "building":
         parts = [_part(shapes.box(c, z0 - 0.3, (size[0], size[1], size[2] + 0.3), yaw, me), "building", kind, rect, True)]
     elif kind == "fence":
@@ -148,10 +169,8 @@ def make_object(world: World, kind: str, xy: np.ndarray, yaw: float, rng: np.ran
         parts = [_part(shapes.merge([body, cab, *wheels]), "vehicle", kind, rect)]
     else:  # obstacle: a barrier block, a bin or a cone
         shape = rng.choice(["block", "cone"], p=[0.7, 0.3])
-        mesh = shapes.box(c, z0, size, yaw, me) if shape == "block" else shapes.cone(c, z0, 0.25, 0.75, me)
+        mesh = shapes.box(c, z0, (size[0], size[1], size[2]), yaw, me) if shape == "block" else shapes.cone(c, z0, 0.25, 0.75, me)
         parts = [_part(mesh, "obstacle", kind, rect)]
-    for p in parts:
-        p.session = session
     return parts
 
 

@@ -53,17 +53,7 @@ def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose
     occluders = [q.footprint for q in my_parts if q.occluder and q.footprint is not None]  # occluders have one
     hidden = [q.footprint for q in my_parts if q.footprint is not None]
 
-    # ground, re-triangulated on a grid of the submap's own frame
-    local_sensors = pose.inverse().apply(sensors)
-    res = params.submap_res
-    llo, lhi = local_sensors[:, :2].min(axis=0) - r, local_sensors[:, :2].max(axis=0) + r
-    xy_local, faces = shapes.grid(np.arange(llo[0], lhi[0] + res, res), np.arange(llo[1], lhi[1] + res, res))
-    xy = pose.apply(np.column_stack([xy_local, np.zeros(len(xy_local))]))[:, :2]
-    gv = np.column_stack([xy, world.ground_height(xy)])
-    gc = gv[faces].mean(axis=1)
-    keep = visible_faces(gc, shapes.face_normals(gv, faces)[0], sensors, r, occluders, hidden)
-    g_faces, g_labels = faces[keep], world.ground_label(gc[keep, :2])
-
+    gv, gc, g_faces, g_labels = _seen_ground_mesh(world, sensors, pose, params, occluders, hidden)
     cand = np.flatnonzero(_in_box(ctx.ground_c[:, :2], lo, hi))
     seen_ground = cand[visible_faces(ctx.ground_c[cand], ctx.ground_n[cand], sensors, r, occluders, hidden)]
     seen_parts = {}
@@ -76,7 +66,7 @@ def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose
     # sensor dropouts: discs of the map where this submap has nothing
     n_drop = int(rng.integers(params.drops_per_submap[0], params.drops_per_submap[1] + 1))
     if n_drop and len(g_faces):
-        centres = gc[keep][rng.choice(len(g_faces), n_drop), :2]
+        centres = gc[rng.choice(len(g_faces), n_drop), :2]
         radii = rng.uniform(*params.drop_radius_m, size=n_drop)
 
         def dropped(points: np.ndarray) -> np.ndarray:
@@ -89,6 +79,30 @@ def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose
         seen_parts = {i: f[~dropped(ctx.parts[i][0][f])] for i, f in seen_parts.items()}
         seen_parts = {i: f for i, f in seen_parts.items() if len(f)}
 
+    return _noisy_local_mesh(world, gv, g_faces, g_labels, seen_parts, pose, params, rng), seen_ground, seen_parts
+
+
+def _seen_ground_mesh(world: World, sensors: np.ndarray, pose: Pose, params: FleetParams, occluders: list,
+                      hidden: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The ground the sensors see, re-triangulated on a grid of the submap's own frame: its vertices
+    (map frame), the centres of the visible faces, those faces and their labels."""
+    r = params.sensor_range
+    local_sensors = pose.inverse().apply(sensors)
+    res = params.submap_res
+    llo, lhi = local_sensors[:, :2].min(axis=0) - r, local_sensors[:, :2].max(axis=0) + r
+    xy_local, faces = shapes.grid(np.arange(llo[0], lhi[0] + res, res), np.arange(llo[1], lhi[1] + res, res))
+    xy = pose.apply(np.column_stack([xy_local, np.zeros(len(xy_local))]))[:, :2]
+    gv = np.column_stack([xy, world.ground_height(xy)])
+    gc = gv[faces].mean(axis=1)
+    keep = visible_faces(gc, shapes.face_normals(gv, faces)[0], sensors, r, occluders, hidden)
+    return gv, gc[keep], faces[keep], world.ground_label(gc[keep, :2])
+
+
+def _noisy_local_mesh(world: World, gv: np.ndarray, g_faces: np.ndarray, g_labels: np.ndarray,
+                      seen_parts: dict[int, np.ndarray], pose: Pose, params: FleetParams,
+                      rng: np.random.Generator) -> SemanticMesh:
+    """Ground and seen part faces merged into one mesh in the submap's local frame, with vertex noise
+    (``vertex_noise_m``) and label noise (``label_noise``: a wrong non-zero label)."""
     pieces = [shapes.compact(gv, g_faces)]
     labels = [g_labels]
     for i, f in seen_parts.items():
@@ -100,7 +114,7 @@ def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose
     v = pose.inverse().apply(v) + rng.normal(scale=params.vertex_noise_m, size=v.shape)
     flip = rng.random(len(lab)) < params.label_noise
     lab[flip] = (lab[flip] - 1 + rng.integers(1, NUM_CLASSES - 1, size=int(flip.sum()))) % (NUM_CLASSES - 1) + 1
-    return SemanticMesh(v, f, lab), seen_ground, seen_parts
+    return SemanticMesh(v, f, lab)
 
 
 def drive(world: World, params: FleetParams, rng: np.random.Generator) -> list[SubmapRecord]:

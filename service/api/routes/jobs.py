@@ -31,6 +31,8 @@ def job_public(job: FusionJob) -> JobPublic:
     )
 
 
+# the route decorators (FastAPI's declarative operation tables) of every resource are alike in shape
+# (duplicates: deliberate)
 @router.get(
     "/{job_id}",
     operation_id="getJob",

@@ -78,6 +78,8 @@ class _Links:
 
 
 def _public(links: _Links, row: Any) -> TilePublic:
+    # a declarative row -> wire-model mapping, like jobs.job_public and submaps.get_submap: alike in shape
+    # only, each names its own model's fields (duplicates: deliberate)
     return TilePublic(
         i=row.i,
         j=row.j,

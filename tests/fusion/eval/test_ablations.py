@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -17,11 +18,18 @@ from fusion.eval.ablations import (
     run_extras,
     wants_extras,
 )
-from fusion.types import FusedMesh, Pose, TileSpec
+from fusion.types import FusedMesh, Pose, SubmapInput, TileSpec
 
 
-def _fake_harness() -> Harness:
-    def fuse(scenario: dict, cfg: FusionConfig) -> tuple[FusedMesh, dict[str, Pose], float]:
+class _FakeHarness:
+    """Stands in for ``fusion.eval.harness.BenchHarness``: scenarios are the simulate overrides."""
+
+    base_config = FusionConfig()
+
+    def simulate(self, **overrides: Any) -> dict:
+        return dict(overrides)
+
+    def fuse(self, scenario: dict, cfg: FusionConfig) -> tuple[FusedMesh, dict[str, Pose], float]:
         v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
         mesh = FusedMesh(
             v,
@@ -32,20 +40,25 @@ def _fake_harness() -> Harness:
         )
         return mesh, {"a": Pose.identity()}, 0.01
 
-    def evaluate(scenario: dict, mesh: FusedMesh, poses: dict[str, Pose]) -> dict[str, float]:
+    def evaluate(self, scenario: dict, mesh: FusedMesh, poses: dict[str, Pose]) -> dict[str, float]:
         f = 0.1 * len(mesh.faces) + 0.01 * scenario.get("sessions", 1)
         return {"geo_p": f, "geo_r": f, "geo_f": f, "sem_f": f / 2, "trans_m": 0.5, "rot_deg": 0.4}
 
-    return Harness(
-        simulate=lambda **kw: dict(kw),
-        fuse=fuse,
-        evaluate=evaluate,
-        base_config=FusionConfig(),
-        submaps=lambda s: [],
-        tile=lambda s: TileSpec(0, 0, 64.0),
-        uploaded_mb_per_km=lambda s: 10.0 / s.get("submap_length", 1.0),
-        field_mb_per_km=lambda s, cfg: float(2**cfg.log2_table_size) / 1e4,
-    )
+    def submaps(self, scenario: dict) -> list[SubmapInput]:
+        return []
+
+    def tile(self, scenario: dict) -> TileSpec:
+        return TileSpec(0, 0, 64.0)
+
+    def uploaded_mb_per_km(self, scenario: dict) -> float:
+        return 10.0 / scenario.get("submap_length", 1.0)
+
+    def field_mb_per_km(self, scenario: dict, cfg: FusionConfig) -> float:
+        return float(2**cfg.log2_table_size) / 1e4
+
+
+def _fake_harness() -> Harness:
+    return _FakeHarness()
 
 
 @pytest.mark.parametrize("name", [n for n in STUDIES if n != "baseline"])

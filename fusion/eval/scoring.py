@@ -1,0 +1,138 @@
+"""Gauge-aligned scoring of a fused mesh against the ground truth: the one implementation used by the
+one-tile bench (``fusion.eval.bench``), the multi-tile bench (``fusion.eval.bench_region``), the ablation
+harness (``fusion.eval.harness``) and ``fleetmap demo`` (``service.client.demo``).
+
+Frames and units: every point, pose and region is in the map frame, metres; submap vertices (the
+anchors) are in their submap's local frame. A gauge is a rigid ``(R, t)``, ``x ↦ R x + t``, taking the
+fused map's frame to the truth's (GPS fixes the map's absolute placement only to a few decimetres, more
+than the F-score distance d = 0.2 m, so the method's quality is scored after that alignment).
+
+Torch-free (the demo's process imports it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fusion.eval import metrics
+from fusion.labels import LABELS
+from fusion.types import FusedMesh, Pose, rotation_angle_deg
+
+if TYPE_CHECKING:
+    from fusion.offline import LoadedSubmap
+
+Gauge = tuple[np.ndarray, np.ndarray]  # (R (3, 3), t (3,)): x ↦ R x + t, map frame, metres
+ANCHORS_PER_SUBMAP = 64
+D = metrics.DEFAULT_D
+# figures reported twice, gauge-aligned (plain key) and absolute (``abs_`` key)
+ABS_KEYS = ("geo_p", "geo_r", "geo_f", "sem_f", "transient_survival", "per_class_f")
+IDENTITY: Gauge = (np.eye(3), np.zeros(3))
+
+
+@dataclass
+class TruthPoints:
+    """The ground truth of one region as point sets (map frame, metres), already cropped to ``region``:
+    ``gt_all`` every surface, ``gt_observed`` the surface some submap saw (recall is measured on it),
+    ``transient`` the observed parts of transient objects standing clear of the static world."""
+
+    region: metrics.Region | None  # None: the whole world
+    gt_all: metrics.PointSet
+    gt_observed: metrics.PointSet
+    transient: metrics.PointSet
+
+    def cropped(self, region: metrics.Region) -> TruthPoints:
+        """The same truth cropped to a sub-``region``."""
+        return TruthPoints(region, metrics.crop(self.gt_all, region), metrics.crop(self.gt_observed, region),
+                           metrics.crop(self.transient, region))
+
+
+def sample_truth(truth: Any, region: metrics.Region | None, density: float = metrics.DEFAULT_DENSITY) -> TruthPoints:
+    """Sample the simulator's ``truth`` (``GroundTruth``) at ``density`` points per m² (seeds 2, 3, 4 for
+    all, observed and transient surfaces) and crop it to ``region``; transient points within 2 d of
+    the static surface are dropped (they cannot be told apart)."""
+    gt = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=2), region)
+    obs = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=3,
+                                              face_mask=truth.observed), region)
+    tr = metrics.crop(metrics.sample_surface(truth.transient_vertices, truth.transient_faces, truth.transient_labels,
+                                             density, seed=4, face_mask=truth.transient_observed), region)
+    if len(tr) and len(gt):
+        dist, _ = cKDTree(gt.points).query(tr.points, distance_upper_bound=2 * D)
+        tr = tr.subset(dist > 2 * D)
+    return TruthPoints(region, gt, obs, tr)
+
+
+def anchors(vertices: np.ndarray, per_submap: int = ANCHORS_PER_SUBMAP) -> np.ndarray:
+    """``per_submap`` vertices (local frame) spread evenly over a submap's vertex list (all if fewer)."""
+    v = np.asarray(vertices, np.float64)
+    return v[np.linspace(0, len(v) - 1, min(per_submap, len(v))).astype(int)]
+
+
+def gauge_fit(estimated: Sequence[Pose], true: Sequence[Pose], vertices: Iterable[np.ndarray]) -> Gauge:
+    """Rigid gauge taking the fused map to the truth: Umeyama fit of each submap's anchors (from its
+    local-frame ``vertices``) carried by its ``estimated`` pose onto the same anchors carried by its
+    ``true`` pose. Uses poses only, never the fused or the true surface."""
+    return metrics.gauge_alignment(list(estimated), list(true), [anchors(v) for v in vertices])
+
+
+def submap_gauge(submaps: Sequence[LoadedSubmap], poses: dict[str, Pose], true: dict[str, Pose]) -> Gauge:
+    """``gauge_fit`` over ``submaps`` as the fusion posed them: the refined pose from ``poses``, else the
+    GPS pose they were held at."""
+    return gauge_fit([poses.get(s.input.id, s.pose_gps) for s in submaps], [true[s.input.id] for s in submaps],
+                     [s.input.mesh.vertices for s in submaps])
+
+
+def pose_figures(submaps: Sequence[LoadedSubmap], poses: dict[str, Pose], true: dict[str, Pose]) -> dict[str, Any]:
+    """Pose RMSE (``pose_trans_m`` m, ``pose_rot_deg`` deg) of those ``submaps`` that have a pose in
+    ``poses``, against their ``true`` poses after rigid alignment; ``poses``: how many. Empty if none."""
+    used = [s for s in submaps if s.input.id in poses]
+    if not used:
+        return {}
+    t, r = metrics.pose_rmse([poses[s.input.id] for s in used], [true[s.input.id] for s in used])
+    return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(used)}
+
+
+def gauge_size(gauge: Gauge, region: metrics.Region) -> dict[str, float]:
+    """Size of a gauge: ``gauge_m`` how far it moves the region's centre (z = 0), metres; ``gauge_deg``
+    its rotation angle, degrees."""
+    r, t = gauge
+    (x0, y0), (x1, y1) = region
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    return {"gauge_m": float(np.linalg.norm(r @ centre + t - centre)), "gauge_deg": float(rotation_angle_deg(r))}
+
+
+def score_mesh(truth: TruthPoints, mesh: FusedMesh, gauge: Gauge | None = None) -> dict[str, Any]:
+    """Geometric P/R/F, mean semantic F (per class too, by label name) at d, surviving transient share
+    (None without transient truth) and face count of ``mesh`` in ``truth.region``, after moving it by
+    ``gauge`` if given (its surface is sampled with seed 1)."""
+    pred = metrics.sample_surface(mesh.vertices, mesh.faces, mesh.face_labels, seed=1)
+    if gauge is not None:
+        pred = metrics.transform_points(pred, *gauge)
+    pred = metrics.crop(pred, truth.region)
+    p, r, f = metrics.geometric_prf(pred, truth.gt_all, D, truth.region, truth.gt_observed)
+    sem, per_class = metrics.semantic_f1(pred, truth.gt_all, D, truth.region, truth.gt_observed)
+    survive = None
+    if len(truth.transient) and len(pred):
+        dist, _ = cKDTree(pred.points).query(truth.transient.points, distance_upper_bound=D)
+        survive = float(np.mean(dist <= D))
+    return {"geo_p": p, "geo_r": r, "geo_f": f, "sem_f": sem, "transient_survival": survive,
+            "per_class_f": {LABELS[k].name: v[2] for k, v in per_class.items()}, "faces": int(len(mesh.faces))}
+
+
+def score_aligned_and_absolute(truth: TruthPoints, mesh: FusedMesh, gauge: Gauge | None,
+                               centre_region: metrics.Region | None = None) -> dict[str, Any]:
+    """``score_mesh`` gauge-aligned (plain keys), in the absolute map frame (``abs_`` keys of
+    ``ABS_KEYS``) and the gauge's size at the centre of ``centre_region`` (default ``truth.region``).
+    ``gauge`` None: the mesh is already in the true gauge (e.g. fused at the true poses), so the
+    absolute figures are the aligned ones and the size is zero."""
+    aligned = score_mesh(truth, mesh, gauge)
+    absolute = score_mesh(truth, mesh) if gauge is not None else aligned
+    centre = centre_region or truth.region
+    if centre is None:
+        raise ValueError("the gauge's size needs a region (its centre)")
+    size = gauge_size(gauge, centre) if gauge is not None else {"gauge_m": 0.0, "gauge_deg": 0.0}
+    return aligned | {f"abs_{k}": absolute[k] for k in ABS_KEYS} | size

@@ -1,0 +1,75 @@
+"""The one gauge-aligned scoring (``fusion.eval.scoring``) on toy meshes: it agrees with the metrics used
+directly, and the gauge fit undoes a global rigid offset of the poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusion.eval import metrics, scoring
+from fusion.types import FusedMesh, Pose
+
+
+def _plane(shift: float = 0.0) -> FusedMesh:
+    xs = np.linspace(0, 10, 11)
+    gx, gy = np.meshgrid(xs, xs)
+    v = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, shift)]).astype(np.float32)
+    faces = np.array([[j * 11 + i, j * 11 + i + 1, j * 11 + i + 12] for j in range(10) for i in range(10)]
+                     + [[j * 11 + i, j * 11 + i + 12, j * 11 + i + 11] for j in range(10) for i in range(10)], np.int32)
+    labels = np.where(v[faces].mean(axis=1)[:, 0] < 5, 1, 2).astype(np.uint8)
+    vl = np.ones(len(v), np.uint8)
+    return FusedMesh(v, faces, vl, np.ones(len(v), np.float32), labels)
+
+
+def _truth(mesh: FusedMesh, region: metrics.Region) -> scoring.TruthPoints:
+    gt = metrics.crop(metrics.sample_surface(mesh.vertices, mesh.faces, mesh.face_labels, seed=2), region)
+    empty = metrics.PointSet(np.zeros((0, 3)), np.zeros(0, np.int64))
+    return scoring.TruthPoints(region, gt, gt, empty)
+
+
+def test_score_mesh_without_gauge_matches_the_metrics() -> None:
+    region = ((0.0, 0.0), (6.0, 6.0))
+    truth, pred = _truth(_plane(), region), _plane(shift=0.05)
+    figs = scoring.score_mesh(truth, pred)
+    pts = metrics.sample_surface(pred.vertices, pred.faces, pred.face_labels, seed=1)
+    p, r, f = metrics.geometric_prf(pts, truth.gt_all, metrics.DEFAULT_D, region, truth.gt_observed)
+    sem, _ = metrics.semantic_f1(pts, truth.gt_all, metrics.DEFAULT_D, region, truth.gt_observed)
+    assert (figs["geo_p"], figs["geo_r"], figs["geo_f"], figs["sem_f"]) == (p, r, f, sem)
+    assert figs["transient_survival"] is None and figs["faces"] == len(pred.faces)
+    assert scoring.score_mesh(truth, pred, scoring.IDENTITY) == figs
+
+
+def _pose(r: np.ndarray, t: np.ndarray) -> Pose:
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = r, t
+    return Pose.from_matrix(m)
+
+
+def test_gauge_fit_undoes_a_global_rigid_offset() -> None:
+    rng = np.random.default_rng(0)
+    true = [_pose(Rotation.from_euler("z", rng.uniform(-3, 3)).as_matrix(), np.array([10.0 * k, 0.0, 0.0]))
+            for k in range(4)]
+    g_r, g_t = Rotation.from_euler("z", 2.0, degrees=True).as_matrix(), np.array([0.3, -0.2, 0.1])
+    est = [_pose(g_r.T @ p.rotation(), g_r.T @ (p.t - g_t)) for p in true]  # truth = g ∘ est
+    verts = [rng.uniform(-5, 5, (200, 3)) for _ in true]
+    r, t = scoring.gauge_fit(est, true, verts)
+    np.testing.assert_allclose(r, g_r, atol=1e-9)
+    np.testing.assert_allclose(t, g_t, atol=1e-9)
+    size = scoring.gauge_size((r, t), ((0.0, 0.0), (0.0, 0.0)))
+    assert size["gauge_m"] == pytest.approx(float(np.linalg.norm(g_t)))
+    assert size["gauge_deg"] == pytest.approx(2.0)
+
+
+def test_anchors_spread_over_the_vertices() -> None:
+    v = np.arange(300, dtype=np.float64).reshape(100, 3)
+    a = scoring.anchors(v)
+    assert len(a) == 64 and (a[0] == v[0]).all() and (a[-1] == v[-1]).all()
+    assert len(scoring.anchors(v[:10])) == 10
+
+
+def test_aligned_and_absolute_without_gauge_are_the_same_figures() -> None:
+    region = ((0.0, 0.0), (6.0, 6.0))
+    figs = scoring.score_aligned_and_absolute(_truth(_plane(), region), _plane(shift=0.05), None)
+    assert figs["abs_geo_f"] == figs["geo_f"] and figs["gauge_m"] == 0.0 and figs["gauge_deg"] == 0.0
+    assert set(scoring.ABS_KEYS) <= {k.removeprefix("abs_") for k in figs if k.startswith("abs_")}
