@@ -6,6 +6,11 @@ borders* × its height slab. The SDF is first evaluated on a coarse lattice (eve
 block beyond the tile so both neighbours take the same decision on shared planes); only blocks near
 the surface are evaluated at full resolution, the rest are filled with the coarse value at their
 block's lower corner (same sign as the whole block, so no zero crossing there by construction).
+
+Seams: a neighbour extracted earlier *pins* the shared border plane (``apply_border_pins``): its SDF, and
+its confidence and label near the surface there. Marching-cubes vertices on a border plane depend only
+on the plane's SDF, and their confidence / label are read from the plane's values (``_border_attrs``),
+so both tiles place, keep or drop, and label every seam vertex identically, whatever their fields say.
 """
 
 from __future__ import annotations
@@ -131,16 +136,59 @@ def cube_mask(exact: np.ndarray) -> np.ndarray:
 SIDES = {"x0": (0, 0), "x1": (0, -1), "y0": (1, 0), "y1": (1, -1)}
 
 
-def border_planes(vol: np.ndarray, lat: Lattice) -> dict[str, dict[str, Any]]:
-    """SDF on the 4 border planes with their global lattice placement (see ``apply_border_pins``)."""
+ATTR_BAND_VOXELS = 3.0  # plane points within this many voxels of the surface get confidence / label
+
+
+def border_planes(vol: np.ndarray, lat: Lattice, attr_fn: AttrFn | None = None,
+                  pinned: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, dict[str, Any]]:
+    """SDF on the 4 border planes with their global lattice placement (see ``apply_border_pins``), and
+    with ``attr_fn``: ``conf`` (float32, NaN away from the surface) and ``label`` (int16, -1 there) at
+    the plane points within ``ATTR_BAND_VOXELS`` of the surface. ``pinned[side]``: attribute values a
+    neighbour pinned on that plane (NaN where it had none) take precedence over ours."""
     out = {}
     for name, (axis, side) in SIDES.items():
         plane = vol[side] if axis == 0 else vol[:, side]
         k = lat.k0[axis] if side == 0 else lat.k1[axis]
         rest = [a for a in range(3) if a != axis]
-        out[name] = {"axis": axis, "k": k, "k0": [lat.k0[a] for a in rest], "voxel_m": lat.voxel_m,
-                     "sdf": plane.copy()}
+        entry: dict[str, Any] = {"axis": axis, "k": k, "k0": [lat.k0[a] for a in rest], "voxel_m": lat.voxel_m,
+                                 "sdf": plane.copy()}
+        if attr_fn is not None:
+            conf = np.full(plane.shape, np.nan, np.float32)
+            label = np.full(plane.shape, -1, np.int16)
+            near = np.argwhere(np.abs(plane) < ATTR_BAND_VOXELS * lat.voxel_m)
+            if len(near):
+                idx = np.zeros((len(near), 3), np.int64)
+                idx[:, axis] = k
+                for r, a in enumerate(rest):
+                    idx[:, a] = near[:, r] + lat.k0[a]
+                c, lab = attr_fn(idx.astype(np.float64) * lat.voxel_m)
+                conf[near[:, 0], near[:, 1]] = c
+                label[near[:, 0], near[:, 1]] = lab
+            theirs = (pinned or {}).get(name)
+            if theirs is not None:
+                have = ~np.isnan(theirs["conf"])
+                conf[have] = theirs["conf"][have]
+                label[have] = theirs["label"][have]
+            entry |= {"conf": conf, "label": label}
+        out[name] = entry
+    if attr_fn is not None and pinned:
+        _share_corner_pins(out, pinned)
     return out
+
+
+def _share_corner_pins(planes: dict[str, dict[str, Any]], pinned: dict[str, dict[str, np.ndarray]]) -> None:
+    """A corner column (x and y border at once) lies on an x plane and a y plane: where a neighbour
+    pinned it on one of them, the other takes the same values, so the four tiles meeting there agree."""
+    for xs, ys in itertools.product(("x0", "x1"), ("y0", "y1")):
+        x_row = 0 if ys == "y0" else -1  # the corner's row in the x plane (rows run along y)
+        y_row = 0 if xs == "x0" else -1  # and in the y plane (rows run along x)
+        for src, dst, src_row, dst_row in ((xs, ys, x_row, y_row), (ys, xs, y_row, x_row)):
+            if src not in pinned:
+                continue
+            have = ~np.isnan(pinned[src]["conf"][src_row])
+            for key in ("conf", "label"):
+                planes[dst][key][dst_row][have] = planes[src][key][src_row][have]
+            break
 
 
 def _pin_entries(pins: Any) -> list[dict[str, Any]]:
@@ -151,9 +199,12 @@ def _pin_entries(pins: Any) -> list[dict[str, Any]]:
     return [e for v in values for e in _pin_entries(v)]
 
 
-def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any) -> int:
+def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any,
+                      attrs: dict[str, dict[str, np.ndarray]] | None = None) -> int:
     """Overwrite our border-plane SDF with neighbours' values where the planes (axis, global k) match;
-    returns the number of values pinned. Keys do not matter: the plane's lattice placement does."""
+    returns the number of values pinned. Keys do not matter: the plane's lattice placement does.
+    ``attrs``: filled with the neighbours' pinned ``conf`` / ``label`` planes in our plane's shape,
+    keyed by our side (NaN / -1 where they pinned none; borders stored before these existed have none)."""
     count = 0
     for e in _pin_entries(pins):
         if abs(float(e["voxel_m"]) - lat.voxel_m) > 1e-9:
@@ -178,7 +229,47 @@ def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any) -> int:
             target = vol[side] if axis == 0 else vol[:, side]
             target[ours[0], ours[1]] = sdf[theirs[0], theirs[1]]
             count += target[ours[0], ours[1]].size
+            if attrs is not None and "conf" in e:
+                name = next(n for n, (ax, sd) in SIDES.items() if ax == axis and (sd == 0) == (side == 0))
+                plane = attrs.setdefault(name, {"conf": np.full(target.shape, np.nan, np.float32),
+                                                "label": np.full(target.shape, -1, np.int16)})
+                plane["conf"][ours[0], ours[1]] = np.asarray(e["conf"])[theirs[0], theirs[1]]
+                plane["label"][ours[0], ours[1]] = np.asarray(e["label"])[theirs[0], theirs[1]]
     return count
+
+
+def _border_attrs(verts_idx: np.ndarray, lat: Lattice, border: dict[str, dict[str, Any]],
+                  conf: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Confidence and label of the vertices lying on a border plane, read from that plane's values
+    (linear along the vertex's lattice edge; the label of the nearer end), in place; returns the mask
+    of the vertices so set. Both tiles of a seam hold the same plane values (pinned), so they agree on
+    every seam vertex."""
+    shape = lat.shape
+    seam = np.zeros(len(verts_idx), bool)
+    for entry in border.values():
+        if "conf" not in entry:
+            continue
+        axis = int(entry["axis"])
+        at = 0 if entry["k"] == lat.k0[axis] else shape[axis] - 1
+        on = np.flatnonzero(verts_idx[:, axis] == at)
+        if not len(on):
+            continue
+        rest = [a for a in range(3) if a != axis]
+        uv = verts_idx[on][:, rest]
+        lo = np.floor(uv).astype(np.int64)
+        frac = uv - lo
+        hi = np.minimum(lo + (frac > 0), np.asarray(entry["conf"].shape) - 1)
+        c_lo = entry["conf"][lo[:, 0], lo[:, 1]]
+        c_hi = entry["conf"][hi[:, 0], hi[:, 1]]
+        w = frac.max(axis=1)  # a vertex lies on one lattice edge: one fractional coordinate
+        c = (1 - w) * c_lo + w * c_hi
+        near = np.where((w <= 0.5)[:, None], lo, hi)
+        lab = entry["label"][near[:, 0], near[:, 1]]
+        ok = ~np.isnan(c) & (lab >= 0)
+        conf[on[ok]] = c[ok]
+        labels[on[ok]] = lab[ok]
+        seam[on[ok]] = True
+    return seam
 
 
 def _face_labels(vl: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -211,8 +302,9 @@ def extract_mesh(
         raise ValueError(f"face_labels must be 'vertices' or 'centroid', got {face_labels!r}")
     lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)
     vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step)
-    pinned = apply_border_pins(vol, lat, border_pins) if border_pins else 0
-    border = border_planes(vol, lat)
+    pinned_attrs: dict[str, dict[str, np.ndarray]] = {}
+    pinned = apply_border_pins(vol, lat, border_pins, pinned_attrs) if border_pins else 0
+    border = border_planes(vol, lat, attr_fn, pinned_attrs)
     stats: dict[str, Any] = {"lattice_shape": list(lat.shape), "band_points": int(mask.sum()), "pinned": pinned}
     if not ((vol > 0).any() and (vol < 0).any()):
         return FusedMesh.empty(), border, stats
@@ -228,7 +320,13 @@ def extract_mesh(
     if len(faces) == 0:
         return FusedMesh.empty(), border, stats
     conf, labels = attr_fn(verts)
-    keep = (conf[faces] >= c_th).all(1)
+    conf, labels = np.array(conf, np.float64), np.array(labels, np.int64)
+    seam = _border_attrs(verts_idx, lat, border, conf, labels)
+    stats["seam_vertices"] = int(seam.sum())
+    sure = conf >= c_th
+    # a face touching a border plane is kept by its seam vertices alone, so the tiles on both sides
+    # keep the same seam (at most one voxel of surface the interior confidence would drop)
+    keep = np.where(seam[faces].any(1), (sure | ~seam)[faces].all(1), sure[faces].all(1))
     faces = faces[keep]
     used = np.flatnonzero(np.bincount(faces.ravel(), minlength=len(verts)))  # np.unique without the sort
     remap = np.full(len(verts), -1, np.int64)

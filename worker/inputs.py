@@ -88,7 +88,7 @@ def pack_border(border: dict[str, Any]) -> bytes:
         else:
             flat[side] = np.asarray(value)
     buffer = io.BytesIO()
-    np.savez(buffer, **flat)  # type: ignore[arg-type]
+    np.savez_compressed(buffer, **flat)  # type: ignore[arg-type]  # the attribute planes are mostly NaN
     return buffer.getvalue()
 
 

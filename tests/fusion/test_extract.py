@@ -140,3 +140,41 @@ def test_progress_counts_up_to_its_total() -> None:
     totals = {t for _, t in calls}
     assert len(totals) == 1 and len(calls) == totals.pop() > 2
     assert [d for d, _ in calls] == list(range(1, len(calls) + 1))
+
+
+def test_pinned_border_confidence_and_labels_make_seams_agree() -> None:
+    """Two fields that disagree on confidence and label near their shared border x = 8 m: tile b, pinned
+    to tile a, keeps, drops and labels every seam vertex as tile a does (its own field would drop them)."""
+
+    def sure(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.full(len(x), 0.9), np.full(len(x), 1)
+
+    def unsure_near_border(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        conf = np.where((x[:, 0] < 8.6) & (x[:, 1] > 4.0), 0.3, 0.9)  # drops y > 4 along the border
+        return conf, np.full(len(x), 2)
+
+    tile_a, tile_b = TileSpec(0, 0, 8.0), TileSpec(1, 0, 8.0)
+    a, border_a, _ = extract_mesh(wavy(), sure, tile_a, (-1.0, 3.0), 0.25)
+    alone, _, _ = extract_mesh(wavy(0.1), unsure_near_border, tile_b, (-2.0, 4.0), 0.25)
+    assert len(_seam(alone, 8.0)) < len(_seam(a, 8.0)) - 10  # without pins the seam has a gap
+    b, border_b, stats = extract_mesh(wavy(0.1), unsure_near_border, tile_b, (-2.0, 4.0), 0.25,
+                                      border_pins={"x0": border_a["x1"]})
+    assert stats["seam_vertices"] > 10
+    sa, sb = _seam(a, 8.0), _seam(b, 8.0)
+    assert sa.shape == sb.shape and np.abs(sa - sb).max() < 1e-5
+    on_b = np.abs(b.vertices[:, 0] - 8.0) < 1e-6
+    assert np.all(b.vertex_labels[on_b] == 1) and np.allclose(b.vertex_confidence[on_b], 0.9)
+    assert np.all(b.vertex_labels[~on_b] == 2)  # inside tile b its own field rules
+    # the pinned values travel on: b's x0 plane now holds a's attributes where a had them
+    dz = border_a["x1"]["k0"][1] - border_b["x0"]["k0"][1]  # b's slab starts lower
+    overlap = border_b["x0"]["conf"][:, dz : dz + border_a["x1"]["conf"].shape[1]]
+    assert np.array_equal(overlap, border_a["x1"]["conf"], equal_nan=True)
+
+
+def test_borders_without_attributes_still_pin_the_sdf() -> None:
+    """Border planes stored before confidence / label pins existed pin the SDF only."""
+    a, border_a, _ = extract_mesh(wavy(), confident, TileSpec(0, 0, 8.0), (-1.0, 3.0), 0.25)
+    old = {k: v for k, v in border_a["x1"].items() if k not in ("conf", "label")}
+    b, _, stats = extract_mesh(wavy(0.1), confident, TileSpec(1, 0, 8.0), (-2.0, 4.0), 0.25, border_pins=old)
+    assert stats["pinned"] > 0
+    assert np.abs(_seam(a, 8.0) - _seam(b, 8.0)).max() < 1e-5
