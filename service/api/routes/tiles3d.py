@@ -33,6 +33,8 @@ from service.tiles3d import (
 router = APIRouter(prefix="/v1/3dtiles", tags=["3dtiles"])
 
 GLB_MEDIA_TYPE = "model/gltf-binary"
+# Path integers are database integers: a larger one is a 422, not an overflow in the query.
+TileIndex = Annotated[int, Path(ge=-(2**31), le=2**31 - 1)]
 _NOT_MODIFIED = {"description": "Not modified: `If-None-Match` matches the ETag"}
 
 
@@ -105,9 +107,9 @@ CONTENT_RESPONSES: dict[int | str, dict[str, Any]] = {
     responses=CONTENT_RESPONSES,
 )
 def get_tile_content(
-    i: int,
-    j: int,
-    version: Annotated[int, Path(ge=1, description="The tile version (immutable)")],
+    i: TileIndex,
+    j: TileIndex,
+    version: Annotated[int, Path(ge=1, le=2**31 - 1, description="The tile version (immutable)")],
     db: SessionDep,
     blobs: BlobsDep,
     settings: SettingsDep,
