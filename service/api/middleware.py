@@ -129,7 +129,7 @@ class ScopedCORSMiddleware:
         self.cors = CORSMiddleware(
             app,
             allow_origins=["*"],
-            allow_methods=["GET", "HEAD"],
+            allow_methods=["GET"],
             allow_headers=["Authorization", "If-None-Match"],
             expose_headers=["ETag", "X-Tile-Version"],
             max_age=600,
