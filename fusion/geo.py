@@ -84,3 +84,14 @@ def map_to_geodetic(pose: Pose, origin: Origin) -> tuple[float, float, float, np
     lat, lon, alt = float(lat), float(lon), float(alt)
     rotation = enu_rotation(lat, lon, origin).T @ pose.rotation()
     return lat, lon, alt, matrix_to_quat(rotation)
+
+
+def enu_to_ecef(origin: Origin) -> np.ndarray:
+    """(4, 4) homogeneous transform taking map-frame points (ENU metres at ``origin``) to ECEF metres
+    (WGS84): columns are the east, north and up axes in ECEF, then the origin's ECEF position. Exactly
+    the affine map behind ``pymap3d.enu2ecef``; 3D Tiles stores it column-major as a root ``transform``."""
+    lat, lon, alt = origin
+    matrix = np.eye(4)
+    matrix[:3, :3] = _enu_axes_in_ecef(lat, lon)
+    matrix[:3, 3] = pymap3d.geodetic2ecef(lat, lon, alt)
+    return matrix

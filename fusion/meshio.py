@@ -21,6 +21,7 @@ import plyfile
 import trimesh
 
 from fusion.errors import MeshValidationError
+from fusion.gltf import FEATURE_ID_ATTRIBUTE, add_label_table, split_by_label
 from fusion.labels import LABELS, UNLABELED
 from fusion.plyascii import read_ascii
 from fusion.types import FusedMesh, SemanticMesh
@@ -519,28 +520,40 @@ def read_fused_ply(data: bytes) -> FusedMesh:
 MAP_TO_GLTF = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, -1.0, 0, 0], [0, 0, 0, 1.0]])
 
 
-def write_glb(mesh: FusedMesh) -> bytes:
+def write_glb(mesh: FusedMesh, *, centre: np.ndarray | None = None, features: bool = False) -> bytes:
     """Binary glTF of the fused mesh with vertex colours = label colours.
 
-    The vertex buffer holds map-frame coordinates (metres, as in the PLY); the mesh's node carries
-    ``MAP_TO_GLTF`` so that glTF viewers (+y up) show the map upright. An empty mesh gives a valid
-    GLB holding an empty scene."""
-    colours = label_palette()[np.asarray(mesh.vertex_labels, dtype=np.uint8)]
+    The vertex buffer holds map-frame coordinates (metres, as in the PLY) less ``centre`` (a map-frame
+    point, default the map origin); the mesh's node carries ``MAP_TO_GLTF`` times the translation by
+    ``centre``, so glTF viewers (+y up) show the map upright and in place, and float32 positions stay
+    small however far the tile lies from the origin. ``features``: the per-face classes for 3D Tiles
+    (``fusion.gltf``): vertices split by label, colours and ``_FEATURE_ID_0`` per face label, and the
+    label table in ``EXT_structural_metadata``. An empty mesh gives a valid GLB holding an empty scene."""
+    if features:
+        mesh = split_by_label(mesh)
+    labels = np.asarray(mesh.vertex_labels, dtype=np.uint8)
+    offset = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64).reshape(3)
+    colours = label_palette()[labels]
     rgba = np.concatenate([colours, np.full((len(colours), 1), 255, dtype=np.uint8)], axis=1)
     geometry = trimesh.Trimesh(
-        vertices=np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3),
+        vertices=np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3) - offset,
         faces=np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3),
         vertex_colors=rgba,
+        vertex_attributes={FEATURE_ID_ATTRIBUTE: labels.astype(np.float32)} if features else None,
         process=False,
     )
     if len(geometry.faces) == 0:
         data = geometry.export(file_type="glb")  # trimesh refuses to export an empty Scene
     else:
+        placement = np.eye(4)
+        placement[:3, 3] = offset
         scene = trimesh.Scene()
-        scene.add_geometry(geometry, geom_name="tile", node_name="tile", transform=MAP_TO_GLTF)
+        scene.add_geometry(geometry, geom_name="tile", node_name="tile", transform=MAP_TO_GLTF @ placement)
         data = scene.export(file_type="glb")
     if not isinstance(data, bytes):
         raise TypeError(f"trimesh returned {type(data).__name__} for a GLB export")
+    if features and len(geometry.faces):
+        data = add_label_table(data, feature_count=len(np.unique(labels)))
     return data
 
 

@@ -19,9 +19,9 @@ from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 from fastapi.openapi.utils import get_openapi
 
-from service.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
+from service.api.middleware import BodyLimitMiddleware, RequestContextMiddleware, ScopedCORSMiddleware
 from service.api.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
-from service.api.routes import capabilities, jobs, labels, ops, sessions, submaps, tiles
+from service.api.routes import capabilities, jobs, labels, ops, sessions, submaps, tiles, tiles3d
 from service.api.schemas import SubmapMeta
 from service.schedule import start_background, stop_background
 from service.settings import Settings, get_settings
@@ -98,6 +98,7 @@ def create_app(
         openapi_tags=[
             {"name": "submaps", "description": "Upload and read submaps"},
             {"name": "tiles", "description": "Tile states, fusion, fused meshes"},
+            {"name": "3dtiles", "description": "The fused map as OGC 3D Tiles 1.1 (CesiumJS, deck.gl)"},
             {"name": "jobs", "description": "Fusion jobs"},
             {"name": "sessions", "description": "Poses per driving session"},
             {"name": "labels", "description": "The semantic label set"},
@@ -113,7 +114,8 @@ def create_app(
     install_problem_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_upload_bytes)
     app.add_middleware(RequestContextMiddleware)
-    for module in (labels, capabilities, submaps, tiles, jobs, sessions, ops):
+    app.add_middleware(ScopedCORSMiddleware, prefixes=(tiles3d.router.prefix + "/",))
+    for module in (labels, capabilities, submaps, tiles, tiles3d, jobs, sessions, ops):
         app.include_router(module.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app

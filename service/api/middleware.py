@@ -1,4 +1,5 @@
-"""Pure-ASGI middleware: request ids + access log, and the request body size limit.
+"""Pure-ASGI middleware: request ids + access log, the request body size limit, and CORS for the
+read-only paths that viewers on other origins load (3D Tiles).
 
 The body limit is enforced while the body streams in (Starlette caps single multipart fields
 but not the whole body), and up front when ``Content-Length`` already announces too much.
@@ -11,6 +12,7 @@ import re
 import time
 import uuid
 
+from starlette.middleware.cors import CORSMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.problems import BodyTooLargeError, ProblemError, problem_response
@@ -114,3 +116,27 @@ class BodyLimitMiddleware:
         # the client may still be sending: close the connection rather than drain a huge body
         response = problem_response(ProblemError(exc.status, exc.detail, code=exc.code, headers={"Connection": "close"}))
         await response(scope, receive, send)
+
+
+class ScopedCORSMiddleware:
+    """Cross-origin reads of the paths under ``prefixes`` only (Starlette's CORS handling): a CesiumJS
+    or deck.gl page on any origin may load the 3D Tiles with its bearer token. Any origin is allowed
+    because the token travels in the ``Authorization`` header, never in a cookie."""
+
+    def __init__(self, app: ASGIApp, prefixes: tuple[str, ...]) -> None:
+        self.app = app
+        self.prefixes = prefixes
+        self.cors = CORSMiddleware(
+            app,
+            allow_origins=["*"],
+            allow_methods=["GET"],
+            allow_headers=["Authorization", "If-None-Match"],
+            expose_headers=["ETag", "X-Tile-Version"],
+            max_age=600,
+        )
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and scope["path"].startswith(self.prefixes):
+            await self.cors(scope, receive, send)
+        else:
+            await self.app(scope, receive, send)

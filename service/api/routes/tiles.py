@@ -16,16 +16,15 @@ from sqlalchemy.orm import Session
 
 from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
 from service.api.deps import BlobsDep, Operator, Reader, SessionDep, SettingsDep
+from service.api.downloads import IMMUTABLE, matches, read_blob
 from service.api.problems import ProblemError, problem_responses, validation_error
 from service.api.schemas import FuseAccepted, TileLinks, TilePage, TilePublic
 from service.schedule import request_fusion
-from service.store.blobs import BlobNotFoundError, BlobStore
 from service.store.models import JobTrigger, Submap, SubmapTile, Tile, TileVersion
 
 router = APIRouter(prefix="/v1/tiles", tags=["tiles"])
 
 MEDIA_TYPES = {"ply": "application/octet-stream", "glb": "model/gltf-binary"}
-IMMUTABLE = "public, max-age=31536000, immutable"
 
 
 # Per-tile aggregates as correlated subqueries: evaluated only for the tiles of the page (an index-only
@@ -202,20 +201,6 @@ def _etag(mesh_sha256: str, fmt: str, min_confidence: float | None) -> str:
     return '"' + hashlib.sha256(key.encode()).hexdigest()[:32] + '"'
 
 
-def _matches(if_none_match: str | None, etag: str) -> bool:
-    if not if_none_match:
-        return False
-    candidates = [c.strip().removeprefix("W/") for c in if_none_match.split(",")]
-    return "*" in candidates or etag in candidates
-
-
-def _blob(blobs: BlobStore, sha256: str) -> bytes:
-    try:
-        return blobs.get(sha256)
-    except BlobNotFoundError as exc:
-        raise ProblemError(503, "the mesh blob is unavailable", code="blob_unavailable") from exc
-
-
 MESH_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {
         "description": "The fused mesh (PLY binary little endian, or GLB), map frame",
@@ -260,15 +245,15 @@ def get_tile_mesh(
         "Content-Disposition": f'attachment; filename="tile_{i}_{j}_v{wanted}.{format}"',
         "X-Tile-Version": str(wanted),
     }
-    if _matches(if_none_match, etag):
+    if matches(if_none_match, etag):
         return Response(status_code=304, headers=headers)
     stored = row.mesh_sha256 if format == "ply" else row.glb_sha256
     if min_confidence is None and stored is not None:
         path = blobs.path(stored)
         if path is not None and path.is_file():
             return FileResponse(path, media_type=MEDIA_TYPES[format], headers=headers)
-        return Response(_blob(blobs, stored), media_type=MEDIA_TYPES[format], headers=headers)
-    fused = read_fused_ply(_blob(blobs, row.mesh_sha256))
+        return Response(read_blob(blobs, stored), media_type=MEDIA_TYPES[format], headers=headers)
+    fused = read_fused_ply(read_blob(blobs, row.mesh_sha256))
     if min_confidence is not None:
         fused = filter_confidence(fused, min_confidence)
     data = write_fused_ply(fused) if format == "ply" else write_glb(fused)
