@@ -21,7 +21,7 @@ from fastapi.openapi.utils import get_openapi
 
 from service.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
 from service.api.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
-from service.api.routes import capabilities, jobs, labels, ops, sessions, submaps, tiles
+from service.api.routes import capabilities, jobs, labels, ops, sessions, submaps, tile_details, tiles
 from service.api.schemas import SubmapMeta
 from service.schedule import start_background, stop_background
 from service.settings import Settings, get_settings
@@ -113,7 +113,7 @@ def create_app(
     install_problem_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_upload_bytes)
     app.add_middleware(RequestContextMiddleware)
-    for module in (labels, capabilities, submaps, tiles, jobs, sessions, ops):
+    for module in (labels, capabilities, submaps, tiles, tile_details, jobs, sessions, ops):
         app.include_router(module.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
