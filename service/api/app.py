@@ -18,6 +18,7 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 from fastapi.openapi.utils import get_openapi
+from fastapi.staticfiles import StaticFiles
 
 from service.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
 from service.api.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
@@ -115,5 +116,7 @@ def create_app(
     app.add_middleware(RequestContextMiddleware)
     for module in (labels, capabilities, submaps, tiles, tile_details, jobs, sessions, ops):
         app.include_router(module.router)
+    # The viewer's scripts and the vendored three.js (no token; not API routes, so not in the schema).
+    app.mount("/static", StaticFiles(packages=[("service.api", "static")]), name="static")
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
