@@ -58,7 +58,7 @@ def test_health_ready_viewer_need_no_token(client: TestClient) -> None:
     assert ready.json()["checks"] == {"database": "ok", "blob_store": "ok", "broker": "skipped"}
     page = client.get("/")
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
-    assert "/v1/tiles" in page.text and "<script" in page.text
+    assert 'type="importmap"' in page.text and '<script type="module"' in page.text  # tests/service/test_api_viewer.py
 
 
 def test_readyz_503_when_blob_store_or_database_down(
