@@ -1,8 +1,8 @@
 """Read-only queries behind the viewer's routes: a tile's versions, submaps and fusion jobs, and the
 sessions (with their trajectories) that drove through a range of tiles.
 
-Every listing is bounded by a ``limit`` and resumes after a sort key (keyset pagination), so a page
-costs the same however deep it is. Frames: trajectories are map-frame translations, metres.
+Every listing is bounded by a ``limit``; the long ones resume after a sort key (keyset pagination), so
+a page costs the same however deep it is. Frames: trajectories are map-frame translations, metres.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ Vec3 = tuple[float, float, float]
 
 def tile_holds_submaps(db: Session, *, i: int, j: int) -> bool:
     """Whether any submap touches tile ``(i, j)`` (the API's test for "the tile exists")."""
-    found = db.scalar(select(literal(1)).where(SubmapTile.i == i, SubmapTile.j == j).limit(1))
+    found = db.scalar(select(SubmapTile.submap_id).where(SubmapTile.i == i, SubmapTile.j == j).limit(1))
     return found is not None
 
 
@@ -136,12 +136,9 @@ def _subsample(points: list[TrackPoint], max_points: int) -> list[TrackPoint]:
     return [points[round(k * step)] for k in range(max_points)]
 
 
-def session_tracks(
-    db: Session, *, tiles: TileRange | None, limit: int, max_points: int, after: str | None = None
-) -> list[SessionTrack]:
-    """Sessions ordered by id, at most ``limit`` after ``after``; with ``tiles``, only those with a
-    submap touching a tile of that range. Each with its whole trajectory (map frame, metres),
-    subsampled to ``max_points``."""
+def sessions_in(db: Session, *, tiles: TileRange | None, limit: int, after: str | None = None) -> list[str]:
+    """Session ids in order, at most ``limit`` after ``after``; with ``tiles``, only the sessions with a
+    submap touching a tile of that range."""
     query = select(Submap.session_id).group_by(Submap.session_id).order_by(Submap.session_id).limit(limit)
     if tiles is not None:
         i0, j0, i1, j1 = tiles
@@ -150,18 +147,27 @@ def session_tracks(
         )
     if after is not None:
         query = query.where(Submap.session_id > after)
-    ids = list(db.scalars(query))
-    if not ids:
+    return list(db.scalars(query))
+
+
+def session_tracks(db: Session, *, session_ids: list[str], max_points: int) -> list[SessionTrack]:
+    """The sessions ``session_ids`` (in that order) with their whole trajectories (map frame, metres),
+    each subsampled to ``max_points``."""
+    if not session_ids:
         return []
     agents = dict(
-        db.execute(select(DrivingSession.session_id, DrivingSession.agent_id).where(DrivingSession.session_id.in_(ids)))
+        db.execute(
+            select(DrivingSession.session_id, DrivingSession.agent_id).where(
+                DrivingSession.session_id.in_(session_ids)
+            )
+        )
         .tuples()
         .all()
     )
-    points: dict[str, list[TrackPoint]] = {sid: [] for sid in ids}
+    points: dict[str, list[TrackPoint]] = {sid: [] for sid in session_ids}
     rows = db.execute(
         select(Submap.session_id, Submap.seq, Submap.pose_gps, Submap.pose_refined)
-        .where(Submap.session_id.in_(ids))
+        .where(Submap.session_id.in_(session_ids))
         .order_by(Submap.session_id, Submap.seq)
     )
     for session_id, seq, pose_gps, pose_refined in rows:
@@ -169,6 +175,6 @@ def session_tracks(
         assert gps is not None  # the column is NOT NULL
         points[session_id].append(TrackPoint(seq, gps, _translation(pose_refined)))
     return [
-        SessionTrack(sid, agents.get(sid, ""), len(points[sid]), _subsample(points[sid], max_points)) for sid in ids
+        SessionTrack(sid, agents.get(sid, ""), len(points[sid]), _subsample(points[sid], max_points))
+        for sid in session_ids
     ]
-

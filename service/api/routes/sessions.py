@@ -42,8 +42,8 @@ def list_sessions(
     submaps' `pose_gps` and `pose_refined` (map frame, metres), by `seq`."""
     tiles = parse_bbox(bbox, settings.tile_size) if bbox is not None else None
     after = decode_cursor(cursor, string)[0] if cursor is not None else None
-    rows = reads.session_tracks(db, tiles=tiles, limit=limit + 1, max_points=max_points, after=after)
-    page = rows[:limit]
+    ids = reads.sessions_in(db, tiles=tiles, limit=limit + 1, after=after)
+    page = reads.session_tracks(db, session_ids=ids[:limit], max_points=max_points)
     items = [
         SessionTrack(
             session_id=row.session_id,
@@ -60,7 +60,7 @@ def list_sessions(
         )
         for row in page
     ]
-    next_cursor = encode_cursor(page[-1].session_id) if len(rows) > limit else None
+    next_cursor = encode_cursor(page[-1].session_id) if len(ids) > limit else None
     return SessionTrackPage(items=items, next_cursor=next_cursor)
 
 
