@@ -17,6 +17,7 @@ const PARALLEL = 4; // mesh downloads at once
 const CACHE_NAME = "fleetmap-meshes-v1";
 
 const $ = (id) => document.getElementById(id);
+const keyOf = (t) => `${t.i},${t.j}`;
 
 /** `#view=cx,cy,span` (map frame, metres): a view to open or share; null if absent or malformed. */
 function viewFromHash() {
@@ -24,7 +25,6 @@ function viewFromHash() {
   const view = match ? match[1].split(",").map(Number) : [];
   return view.length === 3 && view.every(Number.isFinite) && view[2] > 0 ? view : null;
 }
-const keyOf = (t) => `${t.i},${t.j}`;
 
 const hook = {
   ready: false, // the first refresh finished: tiles listed, the meshes in view loaded
@@ -133,6 +133,7 @@ class Viewer {
   }
 
   async connect() {
+    if (!this.map) return; // no WebGL: said so at start
     storeToken($("token").value.trim());
     if (!storedToken()) {
       this.say("Enter a bearer token first.");
