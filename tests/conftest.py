@@ -1,4 +1,5 @@
-"""Fixtures for the HTTP API tests: an app on a tmp data dir, per-role tokens, PLY/meta builders.
+"""Fixtures for the HTTP API tests: an app on a tmp data dir, per-role tokens, PLY/meta builders,
+uploads at a map position and fused tile versions stored without running a fusion.
 
 The database URL is parametrised over SQLite (a file in tmp_path) and PostgreSQL (a fresh schema
 per test in ``FLEETMAP_TEST_DATABASE_URL``, default ``postgresql+psycopg://postgres@127.0.0.1:5432/test``;
@@ -20,9 +21,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
+from fusion.meshio import write_fused_ply, write_glb
+from fusion.types import FusedMesh
 from service.api.app import create_app
 from service.api.auth import create_token
 from service.settings import Settings
+from service.store.models import Tile, TileVersion, utcnow
 
 PG_URL = os.environ.get("FLEETMAP_TEST_DATABASE_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 VEHICLE = "veh-042"
@@ -181,3 +185,50 @@ def upload(
     if mesh is not None:
         files["mesh"] = ("submap.ply", mesh, "application/octet-stream")
     return client.post("/v1/submaps", headers=headers, files=files or {"other": (None, "x")})
+
+
+def upload_at(
+    client: TestClient, headers: dict[str, str], x: float, y: float, seq: int, session: str = "veh-042/s"
+) -> Any:
+    """Upload a one-metre patch GPS-posed at map-frame ``(x, y)`` (so it touches one tile); 201 asserted."""
+    meta = make_meta(
+        session_id=session,
+        seq=seq,
+        gps={"pose": {"t": [x, y, 0.0], "q": [1, 0, 0, 0]}},
+        gps_sigma={"trans_m": 0.5, "rot_deg": 0.01},
+    )
+    resp = upload(client, headers, meta, make_ply(n=1))
+    assert resp.status_code == 201, resp.text
+    return resp.json()
+
+
+def publish_version(
+    app: Any,
+    i: int,
+    j: int,
+    version: int,
+    mesh: FusedMesh,
+    *,
+    job_id: str | None = None,
+    metrics: dict[str, Any] | None = None,
+) -> None:
+    """What a successful fusion leaves behind in ``app``'s stores: the PLY and GLB blobs, a
+    tile_versions row, the tile ``fused`` at that version (no torch, no worker)."""
+    blobs = app.state.blobs
+    ply_sha, glb_sha = blobs.put(write_fused_ply(mesh)), blobs.put(write_glb(mesh))
+    with app.state.session_factory() as db:
+        db.add(
+            TileVersion(
+                tile_i=i,
+                tile_j=j,
+                version=version,
+                job_id=job_id,
+                mesh_sha256=ply_sha,
+                glb_sha256=glb_sha,
+                metrics=metrics if metrics is not None else {},
+            )
+        )
+        tile = db.get(Tile, (i, j))
+        assert tile is not None
+        tile.version, tile.state, tile.fused_at = version, "fused", utcnow()
+        db.commit()

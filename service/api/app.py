@@ -18,10 +18,21 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 from fastapi.openapi.utils import get_openapi
+from fastapi.staticfiles import StaticFiles
 
 from service.api.middleware import BodyLimitMiddleware, RequestContextMiddleware, ScopedCORSMiddleware
 from service.api.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
-from service.api.routes import capabilities, jobs, labels, ops, sessions, submaps, tiles, tiles3d
+from service.api.routes import (
+    capabilities,
+    jobs,
+    labels,
+    ops,
+    sessions,
+    submaps,
+    tile_details,
+    tiles,
+    tiles3d,
+)
 from service.api.schemas import SubmapMeta
 from service.schedule import start_background, stop_background
 from service.settings import Settings, get_settings
@@ -115,7 +126,9 @@ def create_app(
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_upload_bytes)
     app.add_middleware(RequestContextMiddleware)
     app.add_middleware(ScopedCORSMiddleware, prefixes=(tiles3d.router.prefix + "/",))
-    for module in (labels, capabilities, submaps, tiles, tiles3d, jobs, sessions, ops):
+    for module in (labels, capabilities, submaps, tiles, tile_details, tiles3d, jobs, sessions, ops):
         app.include_router(module.router)
+    # The viewer's scripts and the vendored three.js (no token; not API routes, so not in the schema).
+    app.mount("/static", StaticFiles(packages=[("service.api", "static")]), name="static")
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app

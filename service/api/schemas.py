@@ -232,3 +232,73 @@ class Health(BaseModel):
 class Readiness(BaseModel):
     status: Literal["ok"] = "ok"
     checks: dict[str, str] = Field(description="Component → 'ok' or 'skipped'")
+
+
+# ------------------------------------------------------------------ the viewer's reads (not in API.md)
+
+
+class TileVersionLinks(BaseModel):
+    ply: str = Field(description="This version's mesh as PLY (immutable, cacheable forever)")
+    glb: str = Field(description="This version's mesh as GLB")
+
+
+class TileVersionPublic(BaseModel):
+    """One successful fusion of a tile."""
+
+    version: int = Field(ge=1)
+    fused_at: datetime = Field(description="When the fusion that made it committed")
+    job_id: str | None = Field(description="The fusion job that made it (null for versions made outside a job)")
+    mesh_sha256: str = Field(description="sha256 of the stored PLY")
+    glb_sha256: str | None = Field(description="sha256 of the stored GLB, if one was stored")
+    faces: int | None = Field(description="Triangles of the mesh, if recorded")
+    vertices: int | None = Field(description="Vertices of the mesh, if recorded")
+    links: TileVersionLinks
+
+
+class TileVersionPage(BaseModel):
+    items: list[TileVersionPublic] = Field(description="Newest first")
+    next_cursor: str | None = Field(description="Opaque; pass as `cursor` for the next page, null at the end")
+
+
+class TileSubmapPublic(BaseModel):
+    """A submap the tile holds (its mesh and meta: `GET /v1/submaps/{id}`)."""
+
+    id: str
+    session_id: str
+    seq: int
+    agent_id: str
+    captured_at: datetime
+    refined: bool = Field(description="Whether a fusion has refined its pose (`pose_refined` set)")
+
+
+class TileSubmapPage(BaseModel):
+    items: list[TileSubmapPublic] = Field(description="Ordered by (session_id, seq)")
+    next_cursor: str | None = Field(description="Opaque; pass as `cursor` for the next page, null at the end")
+
+
+class JobList(BaseModel):
+    items: list[JobPublic] = Field(description="Newest first")
+
+
+class TrackPoint(BaseModel):
+    seq: int
+    pose_gps_t: Vec3 = Field(description="Translation of the submap's `pose_gps` (map frame, metres)")
+    pose_refined_t: Vec3 | None = Field(
+        description="Translation of its `pose_refined` (map frame, metres); null until a fusion refined it"
+    )
+
+
+class SessionTrack(BaseModel):
+    """A driving session and its trajectory: one point per submap, ordered by `seq`."""
+
+    session_id: str
+    agent_id: str
+    submaps: int = Field(description="Submaps of the session (all of them, not only those in the box)")
+    points: list[TrackPoint] = Field(
+        description="Every submap, or an even subsample of `max_points` (first and last kept) when it has more"
+    )
+
+
+class SessionTrackPage(BaseModel):
+    items: list[SessionTrack] = Field(description="Ordered by session_id")
+    next_cursor: str | None = Field(description="Opaque; pass as `cursor` for the next page, null at the end")

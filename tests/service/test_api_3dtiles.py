@@ -24,8 +24,8 @@ from fastapi.testclient import TestClient
 
 from fusion.labels import LABELS
 from fusion.types import FusedMesh
+from tests.conftest import publish_version, upload_at
 from tests.js_support import JS_DIR, require_package
-from tests.service.test_api_tiles import _publish_version, _upload_at
 
 PROBLEM = "application/problem+json"
 TILESET = "/v1/3dtiles/tileset.json"
@@ -117,8 +117,8 @@ _SEQ = itertools.count()
 
 def _fuse(client: TestClient, auth: dict[str, dict[str, str]], i: int, j: int, version: int, mesh: FusedMesh) -> None:
     if version == 1:
-        _upload_at(client, auth["vehicle"], (i + 0.5) * SIZE, (j + 0.5) * SIZE, seq=next(_SEQ))
-    _publish_version(client, i, j, version, mesh)
+        upload_at(client, auth["vehicle"], (i + 0.5) * SIZE, (j + 0.5) * SIZE, seq=next(_SEQ))
+    publish_version(client.app, i, j, version, mesh)
 
 
 # ----------------------------------------------------------------------------------------- glTF reading
@@ -232,7 +232,7 @@ def test_tileset_places_every_fused_tile_where_the_origin_says(
     meshes = {(0, 0): _tile_mesh(0, 0), (-3, 2): _tile_mesh(-3, 2, lift=-4.0), (700, -450): _tile_mesh(700, -450)}
     for (i, j), mesh in meshes.items():
         _fuse(client, auth, i, j, 1, mesh)
-    _upload_at(client, auth["vehicle"], 5 * SIZE + 1, 1, seq=next(_SEQ))  # a tile never fused: not in the tileset
+    upload_at(client, auth["vehicle"], 5 * SIZE + 1, 1, seq=next(_SEQ))  # a tile never fused: not in the tileset
     tileset = client.get(TILESET, headers=auth["reader"]).json()
     _check_tileset(tileset)
     root = tileset["root"]
@@ -332,7 +332,7 @@ def test_etags_new_versions_and_immutable_content(client: TestClient, auth: dict
 
 def test_auth_and_bad_input_are_problems_never_500(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
     _fuse(client, auth, 0, 0, 1, _tile_mesh(0, 0))
-    _upload_at(client, auth["vehicle"], 3 * SIZE + 1, 1, seq=next(_SEQ))
+    upload_at(client, auth["vehicle"], 3 * SIZE + 1, 1, seq=next(_SEQ))
     assert client.get(TILESET, headers=auth["operator"]).status_code == 200
     for path in (TILESET, "/v1/3dtiles/tiles/0/0/1.glb"):
         assert client.get(path).status_code == 401

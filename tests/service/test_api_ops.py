@@ -58,7 +58,7 @@ def test_health_ready_viewer_need_no_token(client: TestClient) -> None:
     assert ready.json()["checks"] == {"database": "ok", "blob_store": "ok", "broker": "skipped"}
     page = client.get("/")
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
-    assert "/v1/tiles" in page.text and "<script" in page.text
+    assert 'type="importmap"' in page.text and '<script type="module"' in page.text  # tests/service/test_api_viewer.py
 
 
 def test_readyz_503_when_blob_store_or_database_down(
@@ -194,6 +194,10 @@ def test_openapi_is_complete(client: TestClient) -> None:
         ("get", "/v1/tiles/{i}/{j}/mesh"),
         ("get", "/v1/jobs/{job_id}"),
         ("get", "/v1/sessions/{session_id}/poses"),
+        ("get", "/v1/sessions"),
+        ("get", "/v1/tiles/{i}/{j}/versions"),
+        ("get", "/v1/tiles/{i}/{j}/submaps"),
+        ("get", "/v1/tiles/{i}/{j}/jobs"),
         ("get", "/healthz"),
         ("get", "/readyz"),
         ("get", "/metrics"),
@@ -211,6 +215,9 @@ def test_openapi_is_complete(client: TestClient) -> None:
     assert {"200", "201", "409", "413", "422"} <= set(upload_op["responses"])
     assert "multipart/form-data" in upload_op["requestBody"]["content"]
     assert {"Problem", "SubmapMeta", "TilePublic", "JobPublic"} <= set(spec["components"]["schemas"])
+    assert {"TileVersionPage", "TileSubmapPage", "JobList", "SessionTrackPage"} <= set(spec["components"]["schemas"])
+    for path in ("/v1/tiles/{i}/{j}/versions", "/v1/tiles/{i}/{j}/submaps", "/v1/tiles/{i}/{j}/jobs"):
+        assert {"401", "403", "404", "422"} <= set(ops[("get", path)]["responses"]), path
     assert "HTTPValidationError" not in spec["components"]["schemas"]
     errors = spec["components"]["schemas"]["Problem"]["properties"]["errors"]
     assert {"$ref": "#/components/schemas/ValidationErrorItem"} in [

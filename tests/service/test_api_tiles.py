@@ -7,26 +7,11 @@ from typing import Any
 import numpy as np
 from fastapi.testclient import TestClient
 
-from fusion.meshio import read_fused_ply, write_fused_ply, write_glb
+from fusion.meshio import read_fused_ply, write_fused_ply
 from fusion.types import FusedMesh
-from service.store.models import Tile, TileVersion, utcnow
-from tests.conftest import make_meta, make_ply, upload
+from tests.conftest import publish_version, upload_at
 
 PROBLEM = "application/problem+json"
-
-
-def _upload_at(
-    client: TestClient, headers: dict[str, str], x: float, y: float, seq: int, session: str = "veh-042/s"
-) -> Any:
-    meta = make_meta(
-        session_id=session,
-        seq=seq,
-        gps={"pose": {"t": [x, y, 0.0], "q": [1, 0, 0, 0]}},
-        gps_sigma={"trans_m": 0.5, "rot_deg": 0.01},
-    )
-    resp = upload(client, headers, meta, make_ply(n=1))
-    assert resp.status_code == 201, resp.text
-    return resp.json()
 
 
 def _fused_mesh() -> FusedMesh:
@@ -39,25 +24,9 @@ def _fused_mesh() -> FusedMesh:
     )
 
 
-def _publish_version(client: TestClient, i: int, j: int, version: int, mesh: FusedMesh) -> None:
-    """What a successful fusion leaves behind: blobs, a tile_versions row, the tile at that version."""
-    blobs = client.app.state.blobs  # type: ignore[attr-defined]
-    ply_sha, glb_sha = blobs.put(write_fused_ply(mesh)), blobs.put(write_glb(mesh))
-    with client.app.state.session_factory() as db:  # type: ignore[attr-defined]
-        db.add(
-            TileVersion(
-                tile_i=i, tile_j=j, version=version, mesh_sha256=ply_sha, glb_sha256=glb_sha, metrics={}
-            )
-        )
-        tile = db.get(Tile, (i, j))
-        assert tile is not None
-        tile.version, tile.state, tile.fused_at = version, "fused", utcnow()
-        db.commit()
-
-
 def test_list_tiles_filters_and_pagination(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
     for seq, (x, y) in enumerate([(10, 10), (74, 10), (10, 74), (-54, -54), (138, 10)]):
-        _upload_at(client, auth["vehicle"], x, y, seq)
+        upload_at(client, auth["vehicle"], x, y, seq)
     resp = client.get("/v1/tiles", headers=auth["reader"])
     assert resp.status_code == 200
     items = resp.json()["items"]
@@ -108,7 +77,7 @@ def test_list_tiles_bad_parameters(client: TestClient, auth: dict[str, dict[str,
 
 
 def test_tile_roles_and_404(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
-    _upload_at(client, auth["vehicle"], 10, 10, 0)
+    upload_at(client, auth["vehicle"], 10, 10, 0)
     assert client.get("/v1/tiles/0/0", headers=auth["reader"]).json()["submaps"] == 1
     assert client.get("/v1/tiles/0/0", headers=auth["operator"]).status_code == 200
     assert client.get("/v1/tiles/0/0", headers=auth["vehicle"]).status_code == 403
@@ -119,7 +88,7 @@ def test_tile_roles_and_404(client: TestClient, auth: dict[str, dict[str, str]])
 
 
 def test_fuse_returns_the_active_job(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
-    _upload_at(client, auth["vehicle"], 10, 10, 0)
+    upload_at(client, auth["vehicle"], 10, 10, 0)
     assert client.post("/v1/tiles/0/0/fuse", headers=auth["reader"]).status_code == 403
     assert client.post("/v1/tiles/9/9/fuse", headers=auth["operator"]).status_code == 404
     first = client.post("/v1/tiles/0/0/fuse", headers=auth["operator"])
@@ -142,16 +111,16 @@ def test_fuse_returns_the_active_job(client: TestClient, auth: dict[str, dict[st
 
 
 def test_mesh_404_until_fused(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
-    _upload_at(client, auth["vehicle"], 10, 10, 0)
+    upload_at(client, auth["vehicle"], 10, 10, 0)
     resp = client.get("/v1/tiles/0/0/mesh", headers=auth["reader"])
     assert resp.status_code == 404 and resp.json()["code"] == "mesh_not_found"
     assert client.get("/v1/tiles/3/3/mesh", headers=auth["reader"]).status_code == 404
 
 
 def test_mesh_download_etag_and_versions(client: TestClient, auth: dict[str, dict[str, str]]) -> None:
-    _upload_at(client, auth["vehicle"], 10, 10, 0)
+    upload_at(client, auth["vehicle"], 10, 10, 0)
     mesh = _fused_mesh()
-    _publish_version(client, 0, 0, 1, mesh)
+    publish_version(client.app, 0, 0, 1, mesh)
     h = auth["reader"]
 
     latest = client.get("/v1/tiles/0/0/mesh", headers=h)
@@ -190,7 +159,7 @@ def test_mesh_download_etag_and_versions(client: TestClient, auth: dict[str, dic
     # a second version: the latest moves on, version 1 stays what it was
     mesh2 = _fused_mesh()
     mesh2.vertices = mesh2.vertices + 1
-    _publish_version(client, 0, 0, 2, mesh2)
+    publish_version(client.app, 0, 0, 2, mesh2)
     newest = client.get("/v1/tiles/0/0/mesh", headers={**h, "If-None-Match": etag})
     assert newest.status_code == 200 and newest.headers["etag"] != etag
     assert client.get("/v1/tiles/0/0/mesh", params={"version": 1}, headers=h).content == write_fused_ply(mesh)

@@ -2,11 +2,7 @@
 
 from __future__ import annotations
 
-import base64
-import binascii
 import hashlib
-import json
-import math
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, Response
@@ -17,7 +13,8 @@ from sqlalchemy.orm import Session
 from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
 from service.api.deps import BlobsDep, Operator, Reader, SessionDep, SettingsDep
 from service.api.downloads import IMMUTABLE, matches, read_blob
-from service.api.problems import ProblemError, problem_responses, validation_error
+from service.api.params import decode_cursor, encode_cursor, integer, parse_bbox
+from service.api.problems import ProblemError, problem_responses
 from service.api.schemas import FuseAccepted, TileLinks, TilePage, TilePublic
 from service.schedule import request_fusion
 from service.store.models import JobTrigger, Submap, SubmapTile, Tile, TileVersion
@@ -99,35 +96,6 @@ def _json(model: TilePublic | TilePage) -> Response:
     return Response(model.model_dump_json(), media_type="application/json")
 
 
-def _encode_cursor(i: int, j: int) -> str:
-    return base64.urlsafe_b64encode(json.dumps([i, j]).encode()).decode().rstrip("=")
-
-
-def _decode_cursor(cursor: str) -> tuple[int, int]:
-    try:
-        i, j = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
-        return int(i), int(j)
-    except (binascii.Error, ValueError, TypeError, UnicodeDecodeError) as exc:
-        msg = "cursor is not one this API returned"
-        errors = [validation_error(["query", "cursor"], msg, "invalid_cursor")]
-        raise ProblemError(422, msg, code="invalid_cursor", errors=errors) from exc
-
-
-def _parse_bbox(bbox: str, size: float) -> tuple[int, int, int, int]:
-    """Tile index range (i0, j0, i1, j1) touched by a map-frame box ``xmin,ymin,xmax,ymax`` (metres)."""
-    try:
-        xmin, ymin, xmax, ymax = (float(v) for v in bbox.split(","))
-    except ValueError as exc:
-        msg = "bbox is 'xmin,ymin,xmax,ymax' in metres"
-        errors = [validation_error(["query", "bbox"], msg, "invalid_bbox")]
-        raise ProblemError(422, msg, code="invalid_bbox", errors=errors) from exc
-    if not all(math.isfinite(v) for v in (xmin, ymin, xmax, ymax)) or xmin > xmax or ymin > ymax:
-        msg = "bbox needs finite values with xmin <= xmax and ymin <= ymax"
-        errors = [validation_error(["query", "bbox"], msg, "invalid_bbox")]
-        raise ProblemError(422, msg, code="invalid_bbox", errors=errors)
-    return math.floor(xmin / size), math.floor(ymin / size), math.floor(xmax / size), math.floor(ymax / size)
-
-
 def _tile_row(db: Session, i: int, j: int) -> Any:
     """The tile's row with its counts; 404 unless it holds a submap."""
     row = db.execute(_TILE_ROW.where(Tile.i == i, Tile.j == j)).first()
@@ -152,15 +120,15 @@ def list_tiles(
     if state is not None:
         query = query.where(Tile.state == state)
     if bbox is not None:
-        i0, j0, i1, j1 = _parse_bbox(bbox, settings.tile_size)
+        i0, j0, i1, j1 = parse_bbox(bbox, settings.tile_size)
         query = query.where(Tile.i.between(i0, i1), Tile.j.between(j0, j1))
     if cursor is not None:
-        ci, cj = _decode_cursor(cursor)
+        ci, cj = decode_cursor(cursor, integer, integer)
         query = query.where(or_(Tile.i > ci, and_(Tile.i == ci, Tile.j > cj)))
     rows = db.execute(query).all()
     page, more = rows[:limit], len(rows) > limit
     links = _Links(request)
-    next_cursor = _encode_cursor(page[-1].i, page[-1].j) if more and page else None
+    next_cursor = encode_cursor(page[-1].i, page[-1].j) if more and page else None
     return _json(TilePage(items=[_public(links, r) for r in page], next_cursor=next_cursor))  # type: ignore[return-value]
 
 
