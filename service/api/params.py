@@ -10,7 +10,9 @@ import binascii
 import json
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Annotated, Any
+
+from fastapi import Path
 
 from service.api.problems import ProblemError, validation_error
 
@@ -66,3 +68,7 @@ def integer(value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise TypeError("expected an integer")
     return value
+
+
+# Tile indices in paths: the database column is a 32-bit integer, so a larger index is a 422, not a 500.
+TileIndex = Annotated[int, Path(ge=-(2**31), le=2**31 - 1, description="tile index (x east for i, y north for j)")]

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from fusion.meshio import read_fused_ply, write_fused_ply
@@ -85,6 +86,16 @@ def test_tile_roles_and_404(client: TestClient, auth: dict[str, dict[str, str]])
     resp = client.get("/v1/tiles/5/-7", headers=auth["reader"])
     assert resp.status_code == 404 and resp.json()["code"] == "tile_not_found"
     assert client.get("/v1/tiles/a/b", headers=auth["reader"]).status_code == 422
+
+
+@pytest.mark.parametrize("path", ["/v1/tiles/99999999999999999999/0", "/v1/tiles/0/-2147483649/mesh",
+                                  "/v1/tiles/2147483648/0/versions", "/v1/tiles/0/99999999999/submaps"])
+def test_a_tile_index_beyond_32_bits_is_a_422_not_a_500(client: TestClient, auth: dict[str, dict[str, str]],
+                                                        path: str) -> None:
+    resp = client.get(path, headers=auth["operator"])
+    assert resp.status_code == 422 and resp.headers["content-type"].startswith("application/problem+json")
+    resp = client.post("/v1/tiles/99999999999999999999/0/fuse", headers=auth["operator"])
+    assert resp.status_code == 422
 
 
 def test_fuse_returns_the_active_job(client: TestClient, auth: dict[str, dict[str, str]]) -> None:

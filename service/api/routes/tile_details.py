@@ -9,7 +9,7 @@ from fastapi import APIRouter, Query, Request
 from sqlalchemy.orm import Session
 
 from service.api.deps import Operator, Reader, SessionDep
-from service.api.params import decode_cursor, encode_cursor, integer, string
+from service.api.params import TileIndex, decode_cursor, encode_cursor, integer, string
 from service.api.problems import ProblemError, problem_responses
 from service.api.routes.jobs import job_public
 from service.api.schemas import (
@@ -59,8 +59,8 @@ def _version_public(request: Request, row: TileVersion) -> TileVersionPublic:
     responses=problem_responses(401, 403, 404, 422),
 )
 def list_tile_versions(
-    i: int,
-    j: int,
+    i: TileIndex,
+    j: TileIndex,
     request: Request,
     db: SessionDep,
     _principal: Reader,
@@ -84,7 +84,7 @@ def list_tile_versions(
     responses=problem_responses(401, 403, 404, 422),
 )
 def list_tile_submaps(
-    i: int, j: int, db: SessionDep, _principal: Reader, limit: Limit = 100, cursor: Cursor = None
+    i: TileIndex, j: TileIndex, db: SessionDep, _principal: Reader, limit: Limit = 100, cursor: Cursor = None
 ) -> TileSubmapPage:
     """The submaps the tile holds, ordered by (session_id, seq)."""
     _held(db, i, j)
@@ -112,8 +112,8 @@ def list_tile_submaps(
     responses=problem_responses(401, 403, 404, 422),
 )
 def list_tile_jobs(
-    i: int,
-    j: int,
+    i: TileIndex,
+    j: TileIndex,
     db: SessionDep,
     _principal: Operator,
     limit: Annotated[int, Query(ge=1, le=100, description="At most this many, the newest")] = 20,

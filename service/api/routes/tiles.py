@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
 from service.api.deps import BlobsDep, Operator, Reader, SessionDep, SettingsDep
 from service.api.downloads import IMMUTABLE, matches, read_blob
-from service.api.params import decode_cursor, encode_cursor, integer, parse_bbox
+from service.api.params import TileIndex, decode_cursor, encode_cursor, integer, parse_bbox
 from service.api.problems import ProblemError, problem_responses
 from service.api.schemas import FuseAccepted, TileLinks, TilePage, TilePublic
 from service.schedule import request_fusion
@@ -138,7 +138,7 @@ def list_tiles(
     response_model=TilePublic,
     responses=problem_responses(401, 403, 404, 422),
 )
-def get_tile(i: int, j: int, request: Request, db: SessionDep, _principal: Reader) -> TilePublic:
+def get_tile(i: TileIndex, j: TileIndex, request: Request, db: SessionDep, _principal: Reader) -> TilePublic:
     """One tile's state, counts, version and links."""
     return _json(_public(_Links(request), _tile_row(db, i, j)))  # type: ignore[return-value]
 
@@ -151,7 +151,7 @@ def get_tile(i: int, j: int, request: Request, db: SessionDep, _principal: Reade
     responses=problem_responses(401, 403, 404, 422, 503),
 )
 def request_tile_fusion(
-    i: int, j: int, db: SessionDep, settings: SettingsDep, _principal: Operator
+    i: TileIndex, j: TileIndex, db: SessionDep, settings: SettingsDep, _principal: Operator
 ) -> FuseAccepted:
     """Queue a (re-)fusion of the tile; an already queued or running job is returned instead. When
     the tile holds submaps not aligned yet, the job is its region's alignment (`GET /v1/jobs/{id}`:
@@ -184,8 +184,8 @@ MESH_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 @router.get("/{i}/{j}/mesh", operation_id="getTileMesh", response_class=Response, responses=MESH_RESPONSES)
 def get_tile_mesh(
-    i: int,
-    j: int,
+    i: TileIndex,
+    j: TileIndex,
     db: SessionDep,
     blobs: BlobsDep,
     _principal: Reader,

@@ -16,6 +16,7 @@ from sqlalchemy import and_, select
 from fusion.meshio import read_fused_ply
 from service.api.deps import BlobsDep, Reader, SessionDep, SettingsDep
 from service.api.downloads import IMMUTABLE, matches, read_blob
+from service.api.params import TileIndex
 from service.api.problems import ProblemError, problem_responses
 from service.store.blobs import BlobStore
 from service.store.models import Tile, TileVersion
@@ -34,7 +35,6 @@ router = APIRouter(prefix="/v1/3dtiles", tags=["3dtiles"])
 
 GLB_MEDIA_TYPE = "model/gltf-binary"
 # Path integers are database integers: a larger one is a 422, not an overflow in the query.
-TileIndex = Annotated[int, Path(ge=-(2**31), le=2**31 - 1)]
 _NOT_MODIFIED = {"description": "Not modified: `If-None-Match` matches the ETag"}
 
 
