@@ -22,6 +22,7 @@ import json
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,7 @@ from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, fmt, peak_memory, prepare
 from fusion.offline import fuse_tiles
 from fusion.tiles import tile_bounds
-from fusion.types import FusedMesh, FusionResult, Pose
+from fusion.types import FusedMesh, FusionResult, Pose, TileSpec
 
 TARGETS = {"geo_f": 0.92, "sem_f": 0.80, "pose_trans_m": 0.10, "pose_rot_deg": 0.2}
 
@@ -127,6 +128,25 @@ def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose]
     return figs
 
 
+def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, config: Any = None) -> dict[str, Any]:
+    """The classical baseline on the same data: one (G)ICP pose graph over every submap, then Poisson
+    per tile (``fusion.eval.baseline.registration.run_baseline_region``), scored like the fusion."""
+    from fusion.eval.baseline.registration import run_baseline_region
+
+    t0 = time.perf_counter()
+    inputs = [replace(s.input, pose_init=s.pose_gps, free=True) for s in ctx.submaps]
+    meshes, poses, timing = run_baseline_region(inputs, [TileSpec(i, j, ctx.tile_size) for i, j in keys],
+                                                method=method, config=config)  # type: ignore[arg-type]
+    results = {k: FusionResult(m, {}, {"duration_s": timing["tile_s"][f"{k[0]}_{k[1]}"]}, {}, {})
+               for k, m in meshes.items()}
+    figs = evaluate_region(ctx, results, poses)
+    recon = list(timing["tile_s"].values())
+    figs |= {"wall_s": time.perf_counter() - t0, "align_s": timing["align_s"],
+             "recon_s_per_tile": float(np.mean(recon)) if recon else None, "tiles_fused": len(results),
+             "baseline": {k: v for k, v in timing.items() if k != "tile_s"}}
+    return figs | _pose_figures(ctx, poses)
+
+
 def format_region_table(report: dict[str, Any]) -> str:
     cols = [("geo P", "geo_p", ".3f"), ("geo R", "geo_r", ".3f"), ("geo F", "geo_f", ".3f"), ("sem F", "sem_f", ".3f"),
             ("abs geo F", "abs_geo_f", ".3f"), ("trans m", "pose_trans_m", ".3f"), ("rot deg", "pose_rot_deg", ".3f"),
@@ -161,13 +181,14 @@ def format_region_table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-ROWS = ("gps", "fused", "oracle")
+ROWS = ("gps", "fused", "oracle", "icp", "gicp")
 
 
 def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5),
                      seed: int = 0, json_path: str | Path | None = None, rows: list[str] | None = None,
                      config: Any = None, out: Callable[[str], None] = print, tile_size: float | None = None,
-                     vertex_noise_m: float | None = None, tiles: int = 3) -> dict[str, Any]:
+                     vertex_noise_m: float | None = None, tiles: int = 3,
+                     baseline_config: Any = None) -> dict[str, Any]:
     """Simulate ``sessions`` sessions through a ``tiles``×``tiles`` core of ``tile_size`` m tiles, fuse the
     core tiles (rows: gps, fused; oracle on request: it doubles the time), print the table, return
     (and optionally write to ``json_path``) every figure."""
@@ -195,6 +216,8 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
             report_rows[name] = _fuse(ctx, keys, None)
         elif name == "oracle":
             report_rows[name] = _fuse(ctx, keys, dict(ctx.truth.poses))
+        elif name in ("icp", "gicp"):
+            report_rows[name] = _baseline(ctx, keys, name, baseline_config)
         else:
             raise ValueError(f"unknown region bench row {name!r} (known: {', '.join(ROWS)})")
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "tiles": tiles,

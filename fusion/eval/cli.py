@@ -91,18 +91,27 @@ def cmd_bench(args: argparse.Namespace) -> int:
     """Simulate, fuse one tile, evaluate against the ground truth, print the table."""
     from fusion.eval.ablations import run_extras, wants_extras
     from fusion.eval.bench import ROWS, run_bench
+    from fusion.eval.bench_region import ROWS as REGION_ROWS
 
     if args.throughput:  # field training points/s micro-benchmark (python -m fusion.eval.perf has more knobs)
         from fusion.eval.perf import run as run_throughput
 
         return run_throughput(args)
-    if wants_extras(args):  # --baseline / --ablation: fusion.eval.ablations prints its own tables
-        run_extras(args)
+    region = args.tiles > 1
+    if wants_extras(args) and not (region and args.baseline and not args.ablation):
+        run_extras(args)  # --ablation, or --baseline --tiles 1: fusion.eval.ablations prints its own tables
         return 0
     rows = args.rows.split(",") if args.rows else None
-    unknown = [r for r in rows or [] if r not in ROWS]
+    baseline_config = None
+    if region and args.baseline:  # the baseline's rows beside the fusion's, on the same multi-tile data
+        from fusion.eval.baseline.registration import BaselineConfig
+
+        rows = [*(rows or ["gps", "fused"]), "icp", "gicp"]
+        baseline_config = BaselineConfig(poisson_points=args.baseline_points, poisson_depth=args.baseline_depth)
+    known = ROWS if not region else REGION_ROWS
+    unknown = [r for r in rows or [] if r not in known]
     if unknown:
-        return _fail(f"unknown bench rows {unknown} (known: {', '.join(ROWS)})")
+        return _fail(f"unknown bench rows {unknown} (known: {', '.join(known)})")
     config = None
     if args.iterations or args.align_iterations:  # CPU-time knobs of the multi-tile bench (reported in its JSON)
         from fusion.config import FusionConfig
@@ -111,11 +120,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         config = base.with_(iterations=args.iterations or base.iterations,
                             align_iterations_per_tile=args.align_iterations or base.align_iterations_per_tile)
     gps_noise = (args.gps_noise_m, args.gps_noise_deg)
-    if args.tiles > 1:  # the multi-tile bench: align the region, reconstruct every tile
+    if region:  # the multi-tile bench: align the region, reconstruct every tile
         from fusion.eval.bench_region import run_region_bench
 
         run_region_bench(args.preset, args.sessions, gps_noise, args.seed, args.json, rows, config, print,
-                         args.tile_size, args.vertex_noise_m, args.tiles)
+                         args.tile_size, args.vertex_noise_m, args.tiles, baseline_config)
         return 0
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=gps_noise, seed=args.seed,
               json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m,

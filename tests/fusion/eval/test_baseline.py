@@ -112,3 +112,27 @@ def test_fixed_submaps_stay_put() -> None:
     cfg = BaselineConfig(poisson_points=20_000, poisson_depth=6)
     _, poses, _ = run_baseline(subs, TileSpec(0, 0, 24.0), config=cfg)
     assert "s0" not in poses
+
+
+def test_region_baseline_aligns_once_and_meshes_every_tile(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The multi-tile bench's baseline: one pose graph over the region's submaps, one Poisson mesh per
+    tile clipped to that tile."""
+    pytest.importorskip("open3d")
+    from fusion.eval.baseline import registration
+
+    calls: list[int] = []
+    real_align = registration.align
+    monkeypatch.setattr(registration, "align", lambda subs, cfg: calls.append(len(subs)) or real_align(subs, cfg))
+    subs, truth = _submaps(np.array([0.5, 0.0, 0.0]))
+    tiles = [TileSpec(i, j, 12.0) for i in (-1, 0) for j in (-1, 0)]
+    cfg = registration.BaselineConfig(method="gicp", poisson_points=30_000, poisson_depth=7)
+    meshes, poses, timing = registration.run_baseline_region(subs, tiles, config=cfg)
+    assert calls == [4]  # one alignment of all four submaps, not one per tile
+    assert set(meshes) == {(t.i, t.j) for t in tiles} and set(timing["tile_s"]) == {"-1_-1", "-1_0", "0_-1", "0_0"}
+    for t in tiles:
+        v = meshes[(t.i, t.j)].vertices
+        assert len(meshes[(t.i, t.j)].faces) > 50
+        centre = v.mean(axis=0)[:2]
+        assert t.xy_min[0] <= centre[0] < t.xy_max[0] and t.xy_min[1] <= centre[1] < t.xy_max[1]
+    rel = poses["s0"].inverse().compose(poses["s3"]).t - truth["s0"].inverse().compose(truth["s3"]).t
+    assert np.linalg.norm(rel) < 0.15
