@@ -5,8 +5,8 @@ square metre. A tile its submaps only graze (a few square metres inside it throu
 uncertainty or sensor range) reaches the same sample density with a fraction of the steps, so the
 schedule scales with the surface the tile holds: the full schedule once the observed surface reaches
 ``schedule_full_cover`` × the tile box's ground area, proportionally less below, never under
-``schedule_min_fraction`` of one tile's schedule (the learning-rate decay, the level of detail and the
-consensus updates are fractions of the schedule and need a few dozen steps to mean anything).
+``schedule_min_fraction`` of one tile's schedule: the field must also learn where there is nothing (an
+undertrained field is confident everywhere and extracts surfaces all over the tile, see ``FusionConfig``).
 
 Content is measured as the distinct ``schedule_voxel_m`` cubes that hold a surface sample, so sessions
 driving the same street count once and the pool's size (capped) does not matter. It is a coarse

@@ -12,7 +12,7 @@ from fusion.schedule import content_iterations, tile_content
 from fusion.types import TileSpec
 from tests.scene import tiny_config, two_sessions
 
-CFG = FusionConfig.preset("cpu")  # 1 m voxels, full at 1 × the box's ground area, floor 0.1
+CFG = FusionConfig.preset("cpu")  # 1 m voxels, full at 1 × the box's ground area, floor 1/3
 LO, HI = np.zeros(3), np.array([80.0, 80.0, 10.0])  # a 64 m tile box with 8 m margins: 6400 m² of ground
 
 
@@ -40,16 +40,18 @@ def test_content_is_the_observed_surface_over_the_box_ground_area() -> None:
 def test_iterations_scale_with_content_between_floor_and_full() -> None:
     assert content_iterations(300, [1.0], CFG) == 300  # a full tile keeps the full schedule
     assert content_iterations(300, [0.5], CFG) == 150
-    assert content_iterations(300, [0.01], CFG) == 30  # floor: 0.1 of a tile's schedule
-    assert content_iterations(300, [0.0], CFG) == 30
+    assert content_iterations(300, [0.01], CFG) == 100  # floor: a third of a tile's schedule
+    assert content_iterations(300, [0.0], CFG) == 100
     # a region: the sum of its tiles' content; grazed tiles add ~nothing, never more than a full tile each
     assert content_iterations(300, [1.0, 1.0, 0.01, 0.01], CFG) == 606
     assert content_iterations(300, [1.0, 0.5, 0.0], CFG) == 450
     assert content_iterations(300, [2.0, 2.0], CFG) == 600
-    assert content_iterations(300, [0.02] * 9, CFG) == 54
-    assert content_iterations(300, [0.001] * 9, CFG) == 30
+    assert content_iterations(300, [0.02] * 9, CFG) == 100
+    assert content_iterations(300, [0.1] * 9, CFG) == 270
+    assert content_iterations(300, [0.5], CFG.with_(schedule_min_fraction=0.1)) == 150
     assert content_iterations(300, [0.3], CFG.with_(schedule_min_fraction=1.0)) == 300
-    assert content_iterations(10, [0.0], CFG) == 1
+    assert content_iterations(10, [0.0], CFG) == 4
+    assert content_iterations(10, [0.0], CFG.with_(schedule_min_fraction=0.0)) == 1
 
 
 def test_reconstruct_and_align_record_their_scheduled_steps() -> None:
