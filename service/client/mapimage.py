@@ -175,7 +175,7 @@ def render(data: MapData, out: Path, title: str | None = None) -> Path:
         ax.text(i * s + 1.5, j * s + 1.5, f"({i},{j})", fontsize=7, color="0.2", zorder=3)
     halo = [effects.withStroke(linewidth=3.0, foreground="white")]
     handles: list[Any] = []
-    colours = plt.get_cmap("tab10").colors
+    colours = [plt.get_cmap("tab10")(k) for k in range(10)]
     for k, (session, rows) in enumerate(sorted(data.poses.items())):
         colour = colours[k % len(colours)]
         gps, refined = _trajectory(rows, "pose_gps"), _trajectory(rows, "pose_refined")
@@ -188,14 +188,14 @@ def render(data: MapData, out: Path, title: str | None = None) -> Path:
         handles += [Line2D([], [], color="0.2", ls="--", label="GPS poses"),
                     Line2D([], [], color="0.2", ls="-", label="refined poses")]
     drawn = set(np.unique(np.concatenate([m.face_labels for m in meshes])).tolist()) if meshes else set()
-    handles += [Patch(facecolor=np.array(rgb) / 255, edgecolor="0.5", label=name)
+    handles += [Patch(facecolor=(rgb[0] / 255, rgb[1] / 255, rgb[2] / 255), edgecolor="0.5", label=name)
                 for label, (name, rgb) in sorted(data.labels.items()) if label in drawn]
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_xlabel("x east (m, map frame)")
     ax.set_ylabel("y north (m)")
-    ax.set_title(title or f"fleetmap: {len(data.tiles)} fused tiles, {len(data.poses)} sessions", fontsize=10)
+    ax.set_title(title or f"fleetmap: {len(data.tiles)} fused tiles, {len(data.poses)} session(s)", fontsize=10)
     fig.tight_layout()
     fig.savefig(out)
     plt.close(fig)
