@@ -91,11 +91,11 @@ class FusionConfig:
     # content-proportional schedule (fusion.schedule): a tile's steps, and its part of a region's alignment
     # steps, scale with the surface it holds (a tile grazed by one submap needs few steps for the same
     # samples per m²); full once the surface, counted in voxels so overlapping sessions count once,
-    # reaches schedule_full_cover × the tile box's ground area (bench tile (0, 0): ~2×), at least
+    # reaches schedule_full_cover × the tile box's ground area (bench tile (0, 0): 1.9×), at least
     # schedule_min_fraction of one tile's steps: a grazed tile of the bench's world (3 sessions, 10 %
     # content) had 49 k faces after 300 steps, 98 k after 100, 171 k after 60 and 705 k after 30 (an
     # untrained field is confident everywhere); geo F 0.06 after 300 steps, 0.11 after 100 (low either way)
-    schedule_voxel_m: float = 1.0
+    schedule_voxel_m: float = 2.0  # ~GPS σ: sessions not aligned yet count once (1 m: the demo's tiles 0.57-0.88 on GPS poses, 0.44-0.63 aligned; 2 m: 0.46-0.79, 0.43-0.66)
     schedule_full_cover: float = 1.0
     schedule_min_fraction: float = 1 / 3
     # confidence

@@ -12,7 +12,7 @@ from fusion.schedule import content_iterations, tile_content
 from fusion.types import TileSpec
 from tests.scene import tiny_config, two_sessions
 
-CFG = FusionConfig.preset("cpu")  # 1 m voxels, full at 1 × the box's ground area, floor 1/3
+CFG = FusionConfig.preset("cpu")  # 2 m voxels, full at 1 × the box's ground area, floor 1/3
 LO, HI = np.zeros(3), np.array([80.0, 80.0, 10.0])  # a 64 m tile box with 8 m margins: 6400 m² of ground
 
 
@@ -30,9 +30,11 @@ def test_content_is_the_observed_surface_over_the_box_ground_area() -> None:
     street = _plane(0, 80, 0, 20)
     twice = np.concatenate([street, street + 0.05])
     assert tile_content(torch.tensor(twice), torch.tensor(LO), torch.tensor(HI), CFG) == tile_content(street, LO, HI, CFG)
-    # a wall adds its area: content is surface, not footprint
+    # a wall adds its area: content is surface, not footprint (its 10 cubes along the street count once)
     wall = np.stack([np.full(800, 40.5), np.repeat(np.arange(0.5, 80, 1.0), 10), np.tile(np.arange(0.5, 10, 1.0), 80)], 1)
-    assert abs(tile_content(np.concatenate([street, wall]), LO, HI, CFG) - (1600 + 800 - 20) / 6400) < 1e-9
+    assert abs(tile_content(np.concatenate([street, wall]), LO, HI, CFG) - (1600 + 800 - 10 * 4) / 6400) < 1e-9
+    # sessions up to a voxel apart (GPS error before the alignment) count about once
+    assert tile_content(np.concatenate([street, street + [0.9, 0.7, 0.0]]), LO, HI, CFG) < 1.2 * 0.25
     # the reference scales it: full at half the ground area
     assert tile_content(street, LO, HI, CFG.with_(schedule_full_cover=0.25)) == 1.0
 
