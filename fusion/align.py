@@ -12,8 +12,9 @@ confidence, eikonal) on that tile's field, plus odometry and GPS prior on all th
 
 Progressive LOD runs up to ``align_max_levels`` (by default every level: capped at 8 of 12 levels the
 one-tile bench's poses stayed ~0.2 m worse, see ``FusionConfig``).
-Iterations: ``align_iterations_per_tile × tiles`` (each tile sees about ``align_iterations_per_tile``
-batches): linear in the region's data.
+Iterations: ``align_iterations_per_tile`` × the region's content in full tiles (``fusion.schedule``:
+each full tile sees about ``align_iterations_per_tile`` batches, a grazed one adds ~nothing): linear in
+the region's data.
 
 Frames: poses live in the *region frame* (map frame shifted by the region's lower tile corner, for
 float32 precision); each tile's field lives in its own *tile frame* (map frame shifted by the tile's
@@ -41,6 +42,7 @@ from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.reconstruct import TileProblem, build_problem, overlapping
 from fusion.runtime import resolve_device
 from fusion.sampling import SurfacePool, consensus_targets, face_geometry, sample_batch
+from fusion.schedule import content_iterations, tile_content
 from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
 from fusion.types import Pose, ProgressCallback, SubmapInput, TileSpec
 
@@ -127,7 +129,8 @@ def align_region(
     built, skipped = _build_tiles(subs, tiles, config, dev, poses, origin, frozen)
     incremental = any(t.frozen for t in built)
     per_tile = config.align_incremental_iterations_per_tile if incremental else config.align_iterations_per_tile
-    iterations = max(1, per_tile * len(built))
+    contents = [tile_content(_posed(t, poses()), t.problem.lo, t.problem.hi, config) for t in built]
+    iterations = content_iterations(per_tile, contents, config)  # a grazed tile adds ~nothing
     t_train = time.perf_counter()
     losses = _train(built, subs, poses, gps, config, iterations, gen, progress)
     train_s = time.perf_counter() - t_train
@@ -145,6 +148,7 @@ def align_region(
         "frozen_tiles": [list(t.key) for t in built if t.frozen],
         "tile_pool_points": {f"{t.key[0]}_{t.key[1]}": int(t.problem.pool.points.shape[0]) for t in built},
         "tile_share": {f"{t.key[0]}_{t.key[1]}": round(t.share, 4) for t in built},
+        "tile_content": {f"{t.key[0]}_{t.key[1]}": round(c, 4) for t, c in zip(built, contents, strict=True)},
         "skipped": skipped,
     }
     return AlignResult(map_poses(poses, origin, subs), fields, metrics)

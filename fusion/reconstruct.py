@@ -32,6 +32,7 @@ from fusion.sampling import (
     sample_surface_pool,
     space_boxes,
 )
+from fusion.schedule import content_iterations, tile_content
 from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
 from fusion.types import FusedMesh, FusionResult, ProgressCallback, ProgressEvent, SubmapInput, TileSpec
 
@@ -161,6 +162,8 @@ def reconstruct_tile(
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     problem = build_problem(submaps, tile, config, dev)
+    content = tile_content(_posed_pool(problem), problem.lo, problem.hi, config)  # steps ∝ content (recorded)
+    config = config.with_(iterations=content_iterations(config.iterations, [content], config))
     field = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
     allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
     if callable(allocate):
@@ -174,6 +177,7 @@ def reconstruct_tile(
     metrics = {
         "losses": losses,
         "iterations": config.iterations,
+        "content": content,
         "duration_s": time.perf_counter() - t_start,
         "duration_train_s": train_s,
         "duration_extract_s": extract_s,

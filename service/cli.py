@@ -1,4 +1,4 @@
-"""The ``fleetmap`` command line: serve, db, token, worker, demo, and the fusion tools.
+"""The ``fleetmap`` command line: serve, db, token, worker, demo, map-image, and the fusion tools.
 
 Errors print one line on stderr and exit with status 2. Subcommands that need torch or Celery
 (worker, demo, simulate/fuse/bench) are imported only when run.
@@ -21,6 +21,7 @@ EXIT_ERROR = 2
 PASSTHROUGH = {
     "worker": ("worker.main:main", "run a Celery fusion worker (production)"),
     "demo": ("service.client.demo:main", "run the embedded demo: simulate a fleet, upload, fuse, serve"),
+    "map-image": ("service.client.mapimage:main", "draw a top-down semantic PNG of a service's fused map"),
 }
 
 

@@ -71,5 +71,6 @@ def tiny_config(**changes: object):  # noqa: ANN201
         iterations=80, surface_samples=1024, space_samples=1024, tile_margin_m=4.0, num_levels=6,
         lod_start_levels=3, base_resolution=8, max_resolution=96, log2_table_size=14, pool_points=40_000,
         pe_frequencies=4, geo_hidden=32, sem_hidden=32, extract_voxel_m=0.25, align_iterations_per_tile=80,
+        schedule_full_cover=1e-3,  # any data is a full tile: the full schedule (the 16 m street fills part of a box)
     )
     return base.with_(**changes)

@@ -140,7 +140,9 @@ class LeaseKeeper:
             return
         self._last_write = now
         fraction = event.iteration / max(1, event.total)
-        if event.stage == "train":
+        if event.stage == "align":  # an alignment job has no extraction
+            progress = fraction
+        elif event.stage == "train":
             progress = TRAIN_SHARE * fraction
         else:
             progress = TRAIN_SHARE + (1 - TRAIN_SHARE) * fraction

@@ -1,15 +1,18 @@
 """``fleetmap demo``: the whole system on one machine, in a few minutes on a 2-core CPU.
 
-1. simulates a fleet driving through a synthetic labelled world (``fusion.eval.synth``),
+1. simulates a fleet driving through a synthetic labelled world (``fusion.eval.synth``; ``DEMO_CORE``),
 2. starts the embedded service (``fleetmap serve`` on a free loopback port, SQLite and blobs under
    ``OUT/data``, auth off, 2 s debounce) with its embedded fusion worker,
 3. uploads every submap over HTTP as vehicles would (multipart ``meta`` + ``mesh``),
 4. shows the tiles' states while they fuse, downloads the fused meshes (PLY + GLB) and refined poses,
-5. prints an evaluation against the simulator's ground truth (``fusion.eval.metrics``).
+5. draws ``map.png`` from what it downloaded (``service.client.mapimage``: the fused tiles top-down by
+   label, the GPS and refined trajectories),
+6. prints an evaluation against the simulator's ground truth (``fusion.eval.scoring``) and the viewer's
+   URL; ``--serve`` keeps the service running for it until Ctrl-C.
 
-It waits for every tile: the fleet's region is aligned once, then each tile is reconstructed (a tile
-its submaps only graze through their GPS uncertainty is fused empty). Leftover jobs resume with
-``FLEETMAP_DATA_DIR=OUT/data fleetmap serve``.
+It waits for every tile: the fleet's region is aligned once, then each tile is reconstructed, each in
+steps proportional to its content (``fusion.schedule``; a tile its submaps only graze through their GPS
+uncertainty is fused empty). Leftover jobs resume with ``FLEETMAP_DATA_DIR=OUT/data fleetmap serve``.
 This process never imports torch: fusion runs in the server's worker child.
 """
 
@@ -29,8 +32,15 @@ from typing import Any
 
 import httpx
 
+from fusion.config import PRESETS
+
 MARKER = ".fleetmap-demo"
 SERVER_START_S = 90.0
+# The driven streets (map frame x/y, metres): 40 m around the corner where tiles (0,0), (1,0), (0,1) and
+# (1,1) of 64 m meet. The sensors see ~25 m beyond them, so the four tiles share the data and no tile is
+# only grazed: a region of four tiles aligned jointly, four reconstructions, seams in both directions, in
+# a few minutes on 2 cores (the bench's world, one 64 m tile driven through, touches nine).
+DEMO_CORE = ((44.0, 44.0), (84.0, 84.0))
 
 
 def _free_port() -> int:
@@ -50,9 +60,9 @@ def _prepare_out(out: Path) -> None:
     (out / MARKER).write_text("written by `fleetmap demo`; safe to delete\n")
 
 
-def start_server(out: Path, preset: str, debounce_s: float) -> tuple[subprocess.Popen[bytes], str]:
-    """``fleetmap serve`` (embedded) on a free port; returns the process and its base URL."""
-    port = _free_port()
+def start_server(out: Path, preset: str, debounce_s: float, port: int = 0) -> tuple[subprocess.Popen[bytes], str]:
+    """``fleetmap serve`` (embedded) on ``port`` (0: a free one); returns the process and its base URL."""
+    port = port or _free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")}
     env.update(
         FLEETMAP_DATA_DIR=str(out / "data"),
@@ -143,9 +153,9 @@ def wait_for_tiles(
         counts: dict[str, int] = {}
         for t in tiles:
             counts[t["state"]] = counts.get(t["state"], 0) + 1
-        busy = [f"({t['i']},{t['j']}) {100 * t['progress']:.0f}%" for t in tiles if t["state"] == "fusing"]
+        busy = _busy(tiles)
         line = "  " + ", ".join(f"{n} {state}" for state, n in sorted(counts.items()))
-        line += f"  [fusing {' '.join(busy)}]" if busy else ""
+        line += f"  [{'; '.join(busy)}]" if busy else ""
         if line != last:
             print(f"[{time.monotonic() - started:6.1f} s]{line}", flush=True)
             last = line
@@ -155,6 +165,21 @@ def wait_for_tiles(
         if time.monotonic() > deadline:
             raise SystemExit(f"tiles not fused within {timeout_s:.0f} s; see the serve log")
         time.sleep(1.0)
+
+
+def _busy(tiles: list[dict[str, Any]]) -> list[str]:
+    """The running jobs: ``aligning N tiles P%`` for a region's alignment (one job leases all its
+    tiles), ``fusing (i,j) P%`` for a tile's reconstruction."""
+    jobs: dict[str, list[dict[str, Any]]] = {}
+    for t in tiles:
+        if t["state"] == "fusing":
+            jobs.setdefault(t["job_id"] or f"{t['i']},{t['j']}", []).append(t)
+    out = []
+    for held in jobs.values():
+        percent = f"{100 * held[0]['progress']:.0f}%"
+        out.append(f"aligning {len(held)} tiles {percent}" if len(held) > 1 else
+                   f"fusing ({held[0]['i']},{held[0]['j']}) {percent}")
+    return out
 
 
 def download(client: httpx.Client, tiles: list[dict[str, Any]], meshes: Path) -> dict[tuple[int, int], bytes]:
@@ -176,50 +201,116 @@ def download(client: httpx.Client, tiles: list[dict[str, Any]], meshes: Path) ->
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fleetmap demo", description=__doc__.splitlines()[0])
-    parser.add_argument("--sessions", type=int, default=3, help="vehicles driving through the world")
+    parser.add_argument("--sessions", type=_positive, default=3, help="vehicles driving through the world")
     parser.add_argument("--seed", type=int, default=0, help="world and fleet seed")
     parser.add_argument("--out", type=Path, default=Path("./fleetmap-demo"), help="output folder")
     parser.add_argument(
-        "--preset", default="cpu", help="fusion preset: cpu, paper (GPU) or tiny (smoke test)"
+        "--preset", default="cpu", choices=PRESETS, help="fusion preset: cpu, paper (GPU) or tiny (smoke test)"
     )
     parser.add_argument("--debounce", type=float, default=2.0, help="seconds of quiet before a tile is fused")
     parser.add_argument("--timeout", type=float, default=1800.0, help="give up after this many seconds")
+    parser.add_argument(
+        "--serve", action="store_true", help="keep the service running for the viewer afterwards (Ctrl-C stops it)"
+    )
+    parser.add_argument("--port", type=int, default=0, help="the service's port (default: a free one)")
     args = parser.parse_args(argv)
-
-    from fusion.eval.synth.simulate import load_ground_truth, simulate
+    if not 0 <= args.port <= 65535:
+        parser.error(f"--port {args.port} is not a TCP port")
 
     out = args.out.resolve()
     _prepare_out(out)
     t0 = time.monotonic()
-    print(f"1/5 simulating {args.sessions} sessions (seed {args.seed}) ...", flush=True)
-    records = simulate(out / "sim", seed=args.seed, sessions=args.sessions)
-    truth = load_ground_truth(out / "sim")
+    print(f"1/6 simulating {args.sessions} sessions (seed {args.seed}) ...", flush=True)
+    records, truth = _simulate(out / "sim", args.seed, args.sessions)
     print(f"    {len(records)} submaps, {sum(len(r.mesh.faces) for r in records):,} faces")
-    print("2/5 starting the embedded service (fleetmap serve + embedded worker) ...", flush=True)
-    proc, base = start_server(out, args.preset, args.debounce)
+    print("2/6 starting the embedded service (fleetmap serve + embedded worker) ...", flush=True)
+    proc, base = start_server(out, args.preset, args.debounce, args.port)
     try:
         with httpx.Client(base_url=base, timeout=60) as client:
             print(f"    {base} (auth off, preset {args.preset}, debounce {args.debounce:g} s)")
-            print("3/5 uploading submaps over HTTP ...", flush=True)
-            ids = upload_all(client, out / "sim", records)
-            tiles = all_tiles(client)
-            tile_size = float(client.get("/v1/capabilities").json()["tile_size_m"])
-            wanted = {(t["i"], t["j"]) for t in tiles}  # alignment, then every tile's reconstruction
-            print(f"4/5 aligning and fusing {len(wanted)} tiles ...", flush=True)
-            tiles = wait_for_tiles(client, wanted, args.timeout)
-            plys = download(client, tiles, out / "meshes")
-            sessions = sorted({r.session_id for r in records})
-            poses = {s: client.get(f"/v1/sessions/{_quote(s)}/poses").json() for s in sessions}
-            jobs = {
-                (t["i"], t["j"]): client.get(f"/v1/jobs/{t['job_id']}").json() for t in tiles if t["job_id"]
-            }
-            (out / "poses.json").write_text(json.dumps(poses, indent=1))
-            print("5/5 evaluating against the ground truth ...", flush=True)
-            report = evaluate(truth, records, ids, tiles, plys, poses, jobs, tile_size)
+            report = _run(client, out, records, truth, args.timeout)
+        print_report(report, out, time.monotonic() - t0)
+        if args.serve:
+            return serve_until_stopped(proc, base)
+        print(f"\nviewer: {base}/ (stopped with the demo; `fleetmap demo --serve` keeps it running)")
+        return 0
     finally:
         stop_server(proc)
-    print_report(report, out, time.monotonic() - t0)
-    return 0
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _simulate(sim: Path, seed: int, sessions: int) -> tuple[list[Any], Any]:
+    """The simulated fleet's uploads (written under ``sim``) and its ground truth: ``DEMO_CORE``."""
+    from fusion.eval.synth.simulate import load_ground_truth, simulate
+    from fusion.eval.synth.world import WorldParams
+
+    world = WorldParams(core_min=DEMO_CORE[0], core_max=DEMO_CORE[1])
+    records = simulate(sim, seed=seed, sessions=sessions, world_params=world)
+    return records, load_ground_truth(sim)
+
+
+def _run(client: httpx.Client, out: Path, records: list[Any], truth: Any, timeout_s: float) -> dict[str, Any]:
+    """Steps 3-6 against the running service: upload, wait for every tile, download, draw, evaluate."""
+    timings: dict[str, float] = {}
+    t = time.monotonic()
+    print("3/6 uploading submaps over HTTP ...", flush=True)
+    ids = upload_all(client, out / "sim", records)
+    tiles = all_tiles(client)
+    tile_size = float(client.get("/v1/capabilities").json()["tile_size_m"])
+    wanted = {(t["i"], t["j"]) for t in tiles}  # alignment, then every tile's reconstruction
+    timings["upload"], t = time.monotonic() - t, time.monotonic()
+    print(f"4/6 aligning and fusing {len(wanted)} tiles ...", flush=True)
+    tiles = wait_for_tiles(client, wanted, timeout_s)
+    timings["fusion"], t = time.monotonic() - t, time.monotonic()
+    plys = download(client, tiles, out / "meshes")
+    sessions = sorted({r.session_id for r in records})
+    poses = {s: client.get(f"/v1/sessions/{_quote(s)}/poses").json() for s in sessions}
+    jobs = {(t["i"], t["j"]): client.get(f"/v1/jobs/{t['job_id']}").json() for t in tiles if t["job_id"]}
+    (out / "poses.json").write_text(json.dumps(poses, indent=1))
+    print("5/6 drawing map.png (fused tiles, GPS and refined trajectories) ...", flush=True)
+    draw_map(out / "map.png", client.get("/v1/labels").json(), tile_size, plys, poses)
+    timings["download, map.png"], t = time.monotonic() - t, time.monotonic()
+    print("6/6 evaluating against the ground truth ...", flush=True)
+    report = evaluate(truth, records, ids, tiles, plys, poses, jobs, tile_size)
+    timings["evaluation"] = time.monotonic() - t
+    return report | {"timings": timings}
+
+
+def draw_map(
+    path: Path, labels: list[dict[str, Any]], tile_size: float, plys: dict[tuple[int, int], bytes],
+    poses: dict[str, list[dict[str, Any]]],
+) -> None:
+    """``map.png`` from what the demo downloaded: the fused tiles' PLYs, the label set, the poses."""
+    from fusion.meshio import read_fused_ply
+    from service.client import mapimage
+
+    meshes = {key: read_fused_ply(data) for key, data in plys.items()}
+    mapimage.render(mapimage.MapData(tile_size, mapimage.labels_from_json(labels), meshes, poses), path)
+
+
+def serve_until_stopped(proc: subprocess.Popen[bytes], base: str) -> int:
+    """Keep the service running until Ctrl-C or SIGTERM (0; the caller stops it), or until it exits (1)."""
+
+    def interrupt(_signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        print(f"\nviewer: {base}/ (serving; Ctrl-C stops it)", flush=True)
+        code = proc.wait()
+        print(f"fleetmap serve exited ({code}); see its log", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("stopping the service ...", flush=True)
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def evaluate(
@@ -347,11 +438,13 @@ def print_report(report: dict[str, Any], out: Path, wall_s: float) -> None:
         )
     else:
         print(f"\nposes: none of {poses['submaps']} submaps refined yet")
+    timings = ", ".join(f"{name} {seconds:.0f} s" for name, seconds in report.get("timings", {}).items())
     print(
-        f"\nfused meshes (PLY, GLB): {out / 'meshes'}\nrefined poses: {out / 'poses.json'}"
+        f"\nmap picture: {out / 'map.png'}\nfused meshes (PLY, GLB): {out / 'meshes'}"
+        f"\nrefined poses: {out / 'poses.json'}"
         f"\nsimulated uploads and ground truth: {out / 'sim'}\nservice data: {out / 'data'} "
         f"(resume: FLEETMAP_DATA_DIR={out / 'data'} FLEETMAP_AUTH=off fleetmap serve)"
-        f"\nserver log: {out / 'serve.log'}\ndone in {wall_s:.0f} s"
+        f"\nserver log: {out / 'serve.log'}\ndone in {wall_s:.0f} s ({timings})"
     )
 
 
