@@ -74,11 +74,13 @@ class CameraSensor:
     # every pass the same way); the rest is each submap's own, so concatenating passes votes only that part out
     bleed_width_m: float = 0.4  # labels bleed up to this far across a class border ...
     bleed_prob: float = 0.5  # ... in this share of the border (patches along it)
-    # (class a, class b, rate): a is labelled b, and b labelled a, in a share ``rate`` of their surface
+    # (true class, labelled as, rate): the segmenter labels ``rate`` of the true class's surface as the other,
+    # between classes that look alike and meet; directed (a wall is rarely called a fence, a fence often a wall)
     confusion: tuple[tuple[str, str, float], ...] = (
-        ("road", "sidewalk", 0.08),
-        ("terrain", "vegetation", 0.15),
-        ("sidewalk", "terrain", 0.05),
+        ("road", "sidewalk", 0.10), ("sidewalk", "road", 0.15),
+        ("sidewalk", "terrain", 0.10), ("terrain", "sidewalk", 0.05),
+        ("terrain", "vegetation", 0.20), ("vegetation", "terrain", 0.20),
+        ("fence", "building", 0.20), ("obstacle", "vehicle", 0.10), ("traffic_sign", "pole", 0.20),
     )
     # (thin class, miss rate): missed surface takes the class around it (markings: road)
     thin_miss: tuple[tuple[str, float], ...] = (("lane_marking", 0.4), ("pole", 0.3), ("traffic_sign", 0.3))
@@ -220,13 +222,12 @@ def bleed(centroids: np.ndarray, labels: np.ndarray, cam: CameraSensor, rng: np.
 
 def confuse(centroids: np.ndarray, labels: np.ndarray, cam: CameraSensor, rng: np.random.Generator,
             place: Place | None = None) -> np.ndarray:
-    """Neighbouring classes confused (``confusion``): for each pair (a, b, rate), a is labelled b and b
-    labelled a in patches covering ``rate`` of their surface. Other classes are left alone."""
+    """Classes confused (``confusion``): for each (true class, labelled as, rate), that class is labelled as
+    the other in patches covering ``rate`` of its surface. Other classes are left alone."""
     out = labels.copy()
-    for i, (a, b, rate) in enumerate(cam.confusion):
-        for j, (src, dst) in enumerate(((_label_id(a), _label_id(b)), (_label_id(b), _label_id(a)))):
-            faces = np.flatnonzero(labels == src)
-            out[faces[error_patches(centroids, faces, rate, cam.label_corr_m, cam, rng, place, (2, i, j))]] = dst
+    for i, (true, wrong, rate) in enumerate(cam.confusion):
+        faces = np.flatnonzero(labels == _label_id(true))
+        out[faces[error_patches(centroids, faces, rate, cam.label_corr_m, cam, rng, place, (2, i))]] = _label_id(wrong)
     return out
 
 
