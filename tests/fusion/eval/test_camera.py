@@ -70,13 +70,22 @@ def test_exact_sensor_writes_todays_output(tmp_path) -> None:
         assert _fingerprint(records, load_ground_truth(out)) == recorded
 
 
-def test_sensor_model_names() -> None:
+def test_sensor_model_names_and_the_sensor_flag() -> None:
+    import argparse
+
     from fusion.eval import cli
 
     assert cli.SENSORS == cm.SENSORS
     assert isinstance(cm.sensor_model("camera"), CameraSensor) and cm.sensor_model("exact") is None
     with pytest.raises(ValueError, match="unknown sensor"):
         cm.sensor_model("lidar")
+    parser = argparse.ArgumentParser()
+    cli.register(parser.add_subparsers(dest="command"))
+    assert parser.parse_args(["simulate", "out"]).sensor == "camera"
+    assert parser.parse_args(["bench"]).sensor == "camera"
+    assert parser.parse_args(["bench", "--sensor", "exact"]).sensor == "exact"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["simulate", "out", "--sensor", "lidar"])
 
 
 # -- field of view and range ----------------------------------------------------------------------
