@@ -178,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fleetmap demo", description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=int, default=3, help="vehicles driving through the world")
     parser.add_argument("--seed", type=int, default=0, help="world and fleet seed")
+    parser.add_argument("--sensor", choices=("camera", "exact"), default="camera",
+                        help="the fleet's sensor model (fusion.eval.synth.camera; default camera)")
     parser.add_argument("--out", type=Path, default=Path("./fleetmap-demo"), help="output folder")
     parser.add_argument(
         "--preset", default="cpu", help="fusion preset: cpu, paper (GPU) or tiny (smoke test)"
@@ -192,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     _prepare_out(out)
     t0 = time.monotonic()
     print(f"1/5 simulating {args.sessions} sessions (seed {args.seed}) ...", flush=True)
-    records = simulate(out / "sim", seed=args.seed, sessions=args.sessions)
+    records = simulate(out / "sim", seed=args.seed, sessions=args.sessions, sensor=args.sensor)
     truth = load_ground_truth(out / "sim")
     print(f"    {len(records)} submaps, {sum(len(r.mesh.faces) for r in records):,} faces")
     print("2/5 starting the embedded service (fleetmap serve + embedded worker) ...", flush=True)
