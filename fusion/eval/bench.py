@@ -38,10 +38,10 @@ from pathlib import Path
 from typing import Any
 
 from fusion.eval import metrics, scoring
-from fusion.eval.bench_context import TILE, TILE_SIZE, BenchContext, fmt, peak_memory, prepare
+from fusion.eval.bench_context import TILE, TILE_SIZE, BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.eval.scoring import ABS_KEYS, Gauge
 from fusion.eval.synth.simulate import simulate
-from fusion.offline import fuse_tiles
+from fusion.offline import LoadedSubmap, fuse_tiles
 from fusion.tiles import tile_bounds
 from fusion.types import FusedMesh, Pose
 
@@ -110,7 +110,27 @@ def row_oracle(ctx: BenchContext) -> dict[str, Any]:
     return evaluate_both(ctx, res.mesh, None) | out
 
 
-ROWS: dict[str, Callable[[BenchContext], dict[str, Any]]] = {"gps": row_gps, "fused": row_fused, "oracle": row_oracle}
+def _tile_submaps(ctx: BenchContext) -> list[LoadedSubmap]:
+    return [s for s in ctx.submaps if TILE in s.tiles]
+
+
+def row_concat(ctx: BenchContext) -> dict[str, Any]:
+    """No fusion: the tile's submaps concatenated at their true poses, the uploads' own quality (the
+    sensor model's ceiling for a method that only places them); in the true gauge."""
+    mesh = concatenated(_tile_submaps(ctx), ctx.truth.poses, tile_bounds(*TILE, ctx.tile_size))
+    return evaluate_both(ctx, mesh, None)
+
+
+def row_concat_gps(ctx: BenchContext) -> dict[str, Any]:
+    """No fusion: the tile's submaps concatenated at their GPS poses, scored like the fused row (gauge-aligned
+    by the GPS poses' rigid fit, and absolute)."""
+    gps = {s.input.id: s.pose_gps for s in ctx.submaps}
+    mesh = concatenated(_tile_submaps(ctx), gps, tile_bounds(*TILE, ctx.tile_size))
+    return evaluate_both(ctx, mesh, gps)
+
+
+ROWS: dict[str, Callable[[BenchContext], dict[str, Any]]] = {
+    "gps": row_gps, "concat": row_concat, "concat_gps": row_concat_gps, "fused": row_fused, "oracle": row_oracle}
 
 
 def check_targets(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -155,7 +175,7 @@ def format_table(report: dict[str, Any]) -> str:
                  (f", {mem['peak_gpu_mib']:.0f} MiB GPU" if mem["peak_gpu_mib"] is not None else ""))
     size = report.get("tile_size_m", TILE_SIZE)
     lines.append(f"submaps {report['submaps']} ({report['home_submaps']} homed in tile {TILE}, {size:g} m), sessions "
-                 f"{report['sessions']}, preset {report['preset']}, seed {report['seed']}, simulate {report['simulate_s']:.1f} s")
+                 f"{report['sessions']}, sensor {report.get('sensor', 'exact')}, preset {report['preset']}, seed {report['seed']}, simulate {report['simulate_s']:.1f} s")
     for name, t in report["targets"].items():
         mark = {True: "ok", False: "MISSED", None: "n/a"}[t["met"]]
         lines.append(f"  target {name:<24} {fmt(t['value'])} (target {t['target']}) {mark}")
@@ -165,9 +185,10 @@ def format_table(report: dict[str, Any]) -> str:
 def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
               json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
               out: Callable[[str], None] = print, tile_size: float | None = None,
-              vertex_noise_m: float | None = None) -> dict[str, Any]:
-    """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg)), fuse tile (0, 0) with the
-    ``preset`` config, evaluate the ``rows`` (default: gps, fused, oracle), print the table, return
+              vertex_noise_m: float | None = None, sensor: str = "camera") -> dict[str, Any]:
+    """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg), ``sensor`` camera or exact),
+    fuse tile (0, 0) with the ``preset`` config, evaluate the ``rows`` (default: all of ``ROWS``; ``gps``,
+    ``concat``, ``concat_gps`` need no fusion), print the table, return
     (and optionally write to ``json_path``) every figure: the one-tile bench (``fleetmap bench --tiles
     1``); the multi-tile one is ``fusion.eval.bench_region.run_region_bench``."""
     from fusion.config import FusionConfig
@@ -181,12 +202,13 @@ def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, fl
         t0 = time.perf_counter()
         world = WorldParams(core_min=(0.0, 0.0), core_max=(size, size))
         fleet = FleetParams(vertex_noise_m=vertex_noise_m) if vertex_noise_m is not None else None
-        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet)
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet,
+                 sensor=sensor)
         sim_s = time.perf_counter() - t0
         ctx = prepare(Path(tmp), cfg, tile_size=size)
     for name in rows or list(ROWS):
         ctx.rows[name] = ROWS[name](ctx)
-    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise),
+    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "sensor": sensor,
               "vertex_noise_m": vertex_noise_m if vertex_noise_m is not None else FleetParams().vertex_noise_m, "simulate_s": sim_s,
               "submaps": len(ctx.submaps), "home_submaps": len(ctx.home), "tile": list(TILE), "tile_size_m": size, "d_m": D,
               "rows": ctx.rows, "memory": peak_memory(), "config": cfg.to_dict()}

@@ -6,15 +6,19 @@ from __future__ import annotations
 
 import resource
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from fusion.eval import metrics
 from fusion.eval.scoring import TruthPoints, sample_truth
 from fusion.eval.synth.simulate import GroundTruth, load_ground_truth
 from fusion.offline import LoadedSubmap, load_directory
 from fusion.tiles import tile_bounds
+from fusion.types import FusedMesh, Pose
 
 TILE = (0, 0)
 TILE_SIZE = 64.0
@@ -45,6 +49,32 @@ def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY
     truth = load_ground_truth(sim_dir)
     region = region or tile_bounds(TILE[0], TILE[1], tile_size)
     return BenchContext(config, submaps, truth, sample_truth(truth, region, density), tile_size=tile_size)
+
+
+def concatenated(submaps: Sequence[LoadedSubmap], poses: dict[str, Pose], region: metrics.Region | None,
+                 margin_m: float = 1.0) -> FusedMesh:
+    """The ``submaps``' meshes carried into the map frame by ``poses`` (by submap id) and concatenated, no
+    fusion: the faces whose centre lies within ``margin_m`` of ``region`` (all if None). What the
+    ``concat`` rows score: the quality of the uploads themselves at those poses."""
+    verts, faces, labels, offset = [], [], [], 0
+    for s in submaps:
+        mesh = s.input.mesh
+        v = poses[s.input.id].apply(np.asarray(mesh.vertices, np.float64))
+        f = np.asarray(mesh.faces, np.int64)
+        keep = np.ones(len(f), bool)
+        if region is not None:
+            (x0, y0), (x1, y1) = region
+            c = v[f].mean(axis=1)
+            keep = ((c[:, 0] >= x0 - margin_m) & (c[:, 0] < x1 + margin_m) & (c[:, 1] >= y0 - margin_m)
+                    & (c[:, 1] < y1 + margin_m))
+        verts.append(v)
+        faces.append(f[keep] + offset)
+        labels.append(np.asarray(mesh.face_labels)[keep])
+        offset += len(v)
+    if not verts:
+        return FusedMesh.empty()
+    return FusedMesh(np.concatenate(verts).astype(np.float32), np.concatenate(faces).astype(np.int32),
+                     np.zeros(offset, np.uint8), np.ones(offset, np.float32), np.concatenate(labels).astype(np.uint8))
 
 
 def peak_memory() -> dict[str, float | None]:

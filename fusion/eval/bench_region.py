@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fusion.eval import scoring
-from fusion.eval.bench_context import BenchContext, fmt, peak_memory, prepare
+from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.offline import fuse_tiles
 from fusion.tiles import tile_bounds
 from fusion.types import FusedMesh, FusionResult, Pose, TileSpec
@@ -171,7 +171,7 @@ def format_region_table(report: dict[str, Any]) -> str:
             lines.append(f"  {name} alignment: {a['iterations']} steps over {a['num_tiles']} tiles, "
                          f"{a['num_submaps']} submaps, {a['duration_s']:.0f} s")
     lines.append(f"submaps {report['submaps']}, sessions {report['sessions']}, tiles {report['tiles']}×{report['tiles']} "
-                 f"of {report['tile_size_m']:g} m, preset {report['preset']}, seed {report['seed']}, "
+                 f"of {report['tile_size_m']:g} m, sensor {report.get('sensor', 'exact')}, preset {report['preset']}, seed {report['seed']}, "
                  f"simulate {report['simulate_s']:.0f} s, peak RSS {report['memory']['peak_rss_mib']:.0f} MiB")
     fused = report["rows"].get("fused", {})
     for key, target in TARGETS.items():
@@ -181,17 +181,27 @@ def format_region_table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-ROWS = ("gps", "fused", "oracle", "icp", "gicp")
+def _concat(ctx: BenchContext, at_gps: bool) -> dict[str, Any]:
+    """No fusion: every submap concatenated at its true (``at_gps``: GPS) pose, scored over the core like the
+    fused row (GPS: gauge-aligned by the GPS poses' rigid fit, and absolute)."""
+    poses = {s.input.id: s.pose_gps for s in ctx.submaps} if at_gps else dict(ctx.truth.poses)
+    mesh = concatenated(ctx.submaps, poses, ctx.points.region)
+    gauge = scoring.submap_gauge(ctx.submaps, poses, ctx.truth.poses) if at_gps else None
+    return scoring.score_aligned_and_absolute(ctx.points, mesh, gauge)
+
+
+ROWS = ("gps", "concat", "concat_gps", "fused", "oracle", "icp", "gicp")
 
 
 def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5),
                      seed: int = 0, json_path: str | Path | None = None, rows: list[str] | None = None,
                      config: Any = None, out: Callable[[str], None] = print, tile_size: float | None = None,
-                     vertex_noise_m: float | None = None, tiles: int = 3,
+                     vertex_noise_m: float | None = None, tiles: int = 3, sensor: str = "camera",
                      baseline_config: Any = None) -> dict[str, Any]:
-    """Simulate ``sessions`` sessions through a ``tiles``×``tiles`` core of ``tile_size`` m tiles, fuse the
-    core tiles (rows: gps, fused; oracle on request: it doubles the time), print the table, return
-    (and optionally write to ``json_path``) every figure."""
+    """Simulate ``sessions`` sessions (``sensor`` camera or exact) through a ``tiles``×``tiles`` core of
+    ``tile_size`` m tiles, fuse the core tiles (rows: gps, fused; oracle on request: it doubles the time;
+    concat / concat_gps: the uploads concatenated, no fusion; icp / gicp: the classical baseline with
+    ``baseline_config``), print the table, return (and optionally write to ``json_path``) every figure."""
     from fusion.config import FusionConfig
     from fusion.eval.synth.fleet import FleetParams
     from fusion.eval.synth.simulate import simulate
@@ -204,7 +214,8 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
         t0 = time.perf_counter()
         world = WorldParams(core_min=(0.0, 0.0), core_max=(tiles * size, tiles * size))
         fleet = FleetParams(vertex_noise_m=vertex_noise_m) if vertex_noise_m is not None else None
-        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet)
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet,
+                 sensor=sensor)
         sim_s = time.perf_counter() - t0
         ctx = prepare(Path(tmp), cfg, tile_size=size, region=((0.0, 0.0), (tiles * size, tiles * size)))
     keys = [(i, j) for i in range(tiles) for j in range(tiles)]
@@ -212,6 +223,8 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
     for name in rows:
         if name == "gps":
             report_rows[name] = _pose_figures(ctx, {s.input.id: s.pose_gps for s in ctx.submaps})
+        elif name in ("concat", "concat_gps"):
+            report_rows[name] = _concat(ctx, at_gps=name == "concat_gps")
         elif name == "fused":
             report_rows[name] = _fuse(ctx, keys, None)
         elif name == "oracle":
@@ -220,7 +233,8 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
             report_rows[name] = _baseline(ctx, keys, name, baseline_config)
         else:
             raise ValueError(f"unknown region bench row {name!r} (known: {', '.join(ROWS)})")
-    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "tiles": tiles,
+    report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "sensor": sensor,
+              "tiles": tiles,
               "tile_size_m": size, "simulate_s": sim_s, "submaps": len(ctx.submaps), "rows": report_rows,
               "memory": peak_memory(), "config": cfg.to_dict()}
     out(format_region_table(report))

@@ -16,6 +16,7 @@ from typing import Any
 from fusion.config import PRESETS
 
 EXIT_ERROR = 2
+SENSORS = ("camera", "exact")  # fusion.eval.synth.camera.SENSORS, spelled out: that module imports scipy and trimesh
 
 
 def _fail(message: str) -> int:
@@ -47,8 +48,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from fusion.eval.synth.simulate import simulate
 
     records = simulate(args.out, seed=args.seed, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg),
-                       fleet_params=FleetParams(vertex_noise_m=args.vertex_noise_m))
-    print(f"wrote {len(records)} submaps of {args.sessions} sessions to {args.out} (ground truth in ground_truth/)")
+                       fleet_params=FleetParams(vertex_noise_m=args.vertex_noise_m), sensor=args.sensor)
+    print(f"wrote {len(records)} submaps of {args.sessions} sessions ({args.sensor} sensor) to {args.out} "
+          "(ground truth in ground_truth/)")
     return 0
 
 
@@ -124,11 +126,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from fusion.eval.bench_region import run_region_bench
 
         run_region_bench(args.preset, args.sessions, gps_noise, args.seed, args.json, rows, config, print,
-                         args.tile_size, args.vertex_noise_m, args.tiles, baseline_config)
+                         args.tile_size, args.vertex_noise_m, args.tiles, args.sensor, baseline_config)
         return 0
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=gps_noise, seed=args.seed,
               json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m,
-              config=config)
+              config=config, sensor=args.sensor)
     return 0
 
 
@@ -140,13 +142,19 @@ def _positive_int(text: str) -> int:
 
 
 def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
-    """The synthetic fleet's options (``simulate``, ``bench``)."""
+    """The synthetic fleet's options (``simulate``, ``bench``). ``--sensor`` defaults to the camera for both:
+    ``simulate`` writes what the bench fuses (``simulate`` + ``fuse`` reproduce a bench run's input), and
+    camera fleets are what the service is for; ``--sensor exact`` keeps the old exact crops."""
     p.add_argument("--seed", type=int, default=0, help="world and fleet seed (default 0)")
+    p.add_argument("--sensor", choices=SENSORS, default="camera",
+                   help="what the vehicles map with (default camera): camera, one front camera's pipeline "
+                        "(field of view, smooth range-dependent depth error, scale drift and bend, segmenter "
+                        "errors, holes; fusion.eval.synth.camera); exact, crops of the world with white noise")
     p.add_argument("--sessions", type=_positive_int, default=5, help="driving sessions (default 5)")
     p.add_argument("--gps-noise-m", type=float, default=1.5, help="GPS translation sigma, metres (default 1.5)")
     p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
     p.add_argument("--vertex-noise-m", type=float, default=0.025,
-                   help="submap vertex noise sigma, metres (default 0.025): how exact the vehicles' meshes are")
+                   help="submap vertex noise sigma, metres (default 0.025) of the exact sensor (--sensor exact)")
 
 
 def register(subparsers: Any) -> None:

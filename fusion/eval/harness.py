@@ -30,7 +30,7 @@ class Harness(Protocol):
 
     def simulate(self, **overrides: Any) -> Any:
         """A synthetic fleet + one tile (overrides: ``sessions``, ``submap_length``, ``gps_sigma_m``,
-        ``gps_sigma_deg``, ``seed``, ``vertex_noise_m``)."""
+        ``gps_sigma_deg``, ``seed``, ``vertex_noise_m``, ``sensor``)."""
 
     def fuse(self, scenario: Any, config: Any) -> tuple[FusedMesh, dict[str, Pose], float]:
         """The neural fusion of the scenario's tile: (mesh, refined poses, seconds)."""
@@ -105,6 +105,7 @@ class BenchHarness:
                 sessions=p["sessions"],
                 gps_noise=(p["gps_sigma_m"], p["gps_sigma_deg"]),
                 fleet_params=FleetParams(submap_length=p["submap_length"], vertex_noise_m=p["vertex_noise_m"]),
+                sensor=p.get("sensor", "camera"),
             )
             upload = sum(f.stat().st_size for f in Path(tmp).glob("*.ply"))
             upload += sum(f.stat().st_size for f in Path(tmp).glob("*.json"))
@@ -178,7 +179,7 @@ class BenchHarness:
 
 
 def bench_harness(args: argparse.Namespace) -> BenchHarness:
-    """Harness with the bench's defaults taken from ``args`` (preset, sessions, seed, GPS noise)."""
+    """Harness with the bench's defaults taken from ``args`` (preset, sessions, seed, GPS noise, sensor)."""
     from fusion.config import FusionConfig
     from fusion.eval.synth.fleet import FleetParams
 
@@ -189,5 +190,6 @@ def bench_harness(args: argparse.Namespace) -> BenchHarness:
         "gps_sigma_deg": getattr(args, "gps_noise_deg", 1.5),
         "submap_length": FleetParams().submap_length,
         "vertex_noise_m": getattr(args, "vertex_noise_m", FleetParams().vertex_noise_m),
+        "sensor": getattr(args, "sensor", "camera"),
     }
     return BenchHarness(FusionConfig.preset(getattr(args, "preset", "cpu")), defaults)

@@ -203,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fleetmap demo", description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=_positive, default=3, help="vehicles driving through the world")
     parser.add_argument("--seed", type=int, default=0, help="world and fleet seed")
+    parser.add_argument("--sensor", choices=("camera", "exact"), default="camera",
+                        help="the fleet's sensor model (fusion.eval.synth.camera; default camera)")
     parser.add_argument("--out", type=Path, default=Path("./fleetmap-demo"), help="output folder")
     parser.add_argument(
         "--preset", default="cpu", choices=PRESETS, help="fusion preset: cpu, paper (GPU) or tiny (smoke test)"
@@ -220,8 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out.resolve()
     _prepare_out(out)
     t0 = time.monotonic()
-    print(f"1/6 simulating {args.sessions} sessions (seed {args.seed}) ...", flush=True)
-    records, truth = _simulate(out / "sim", args.seed, args.sessions)
+    print(f"1/6 simulating {args.sessions} sessions (seed {args.seed}, {args.sensor} sensor) ...", flush=True)
+    records, truth = _simulate(out / "sim", args.seed, args.sessions, args.sensor)
     print(f"    {len(records)} submaps, {sum(len(r.mesh.faces) for r in records):,} faces")
     print("2/6 starting the embedded service (fleetmap serve + embedded worker) ...", flush=True)
     proc, base = start_server(out, args.preset, args.debounce, args.port)
@@ -245,13 +247,13 @@ def _positive(text: str) -> int:
     return value
 
 
-def _simulate(sim: Path, seed: int, sessions: int) -> tuple[list[Any], Any]:
+def _simulate(sim: Path, seed: int, sessions: int, sensor: str = "camera") -> tuple[list[Any], Any]:
     """The simulated fleet's uploads (written under ``sim``) and its ground truth: ``DEMO_CORE``."""
     from fusion.eval.synth.simulate import load_ground_truth, simulate
     from fusion.eval.synth.world import WorldParams
 
     world = WorldParams(core_min=DEMO_CORE[0], core_max=DEMO_CORE[1])
-    records = simulate(sim, seed=seed, sessions=sessions, world_params=world)
+    records = simulate(sim, seed=seed, sessions=sessions, world_params=world, sensor=sensor)
     return records, load_ground_truth(sim)
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from fusion.eval.synth.camera import CameraSensor
 from fusion.eval.synth.placement import make_object, road_frame
 from fusion.eval.synth.world import World
 from fusion.types import Pose, SemanticMesh, Sigma
@@ -23,7 +24,8 @@ from fusion.types import Pose, SemanticMesh, Sigma
 
 @dataclass
 class FleetParams:
-    """Sessions, sensor and noise model. Lengths in metres, angles in degrees."""
+    """Sessions, sensor and noise model. Lengths in metres, angles in degrees. ``sensor_range``,
+    ``vertex_noise_m``, ``label_noise``, ``drops_*`` describe the exact sensor; a ``camera`` brings its own."""
 
     sessions: int = 5
     submap_length: float = 25.0
@@ -43,6 +45,9 @@ class FleetParams:
     odo_trans_per_m: float = 0.004
     odo_yaw_deg_per_m: float = 0.01
     transients_per_session: tuple[int, int] = (1, 2)
+    # None: the exact sensor (crops of the world with the white vertex/label noise and dropouts above);
+    # a CameraSensor: one front camera's pipeline (``fusion.eval.synth.camera``) replaces that noise model
+    camera: CameraSensor | None = None
 
 
 @dataclass

@@ -22,6 +22,7 @@ import numpy as np
 import plyfile
 
 from fusion.eval.synth import shapes
+from fusion.eval.synth.camera import sensor_model
 from fusion.eval.synth.fleet import FleetParams, SubmapRecord
 from fusion.eval.synth.submap import drive
 from fusion.eval.synth.world import World, WorldParams
@@ -91,18 +92,23 @@ def _read_gt_ply(path: Path, tag_name: str) -> tuple[np.ndarray, ...]:
 
 
 def simulate(out_dir: str | Path, seed: int = 0, sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5),
-             world_params: WorldParams | None = None, fleet_params: FleetParams | None = None) -> list[SubmapRecord]:
+             world_params: WorldParams | None = None, fleet_params: FleetParams | None = None,
+             sensor: str | None = None) -> list[SubmapRecord]:
     """Generate a world (``seed``), drive ``sessions`` sessions through it and write what they upload
     (``NAME.ply`` + ``NAME.json``) plus ``ground_truth/``. ``gps_noise``: (σ metres, σ degrees).
 
     ``world_params``/``fleet_params`` override the defaults (their seed/sessions/GPS fields are set
-    from the arguments). Returns the submap records (with their truth).
+    from the arguments). ``sensor``: ``camera`` or ``exact`` (``fusion.eval.synth.camera.sensor_model``)
+    sets ``fleet_params.camera``; None keeps it (the default fleet: exact). Returns the submap records
+    (with their truth).
     """
     out = Path(out_dir)
     wp = world_params or WorldParams()
     wp.seed = seed
     fp = fleet_params or FleetParams()
     fp.sessions, fp.gps_sigma_m, fp.gps_sigma_deg = sessions, float(gps_noise[0]), float(gps_noise[1])
+    if sensor is not None:
+        fp.camera = sensor_model(sensor)
     world = World(wp)
     records = drive(world, fp, np.random.default_rng(seed + 7919))
     out.mkdir(parents=True, exist_ok=True)
@@ -118,7 +124,8 @@ def simulate(out_dir: str | Path, seed: int = 0, sessions: int = 5, gps_noise: t
               "pose_gps": r.pose_gps.to_json(), "odometry": r.odometry.to_json()} for r in records]
     sessions_ids = sorted({r.session_id for r in records})
     (gt / "poses.json").write_text(json.dumps({"submaps": poses, "sessions": sessions_ids}, indent=1))
-    info = {"world": asdict(wp), "fleet": asdict(fp), "sidewalk_width_m": world.sidewalk_width,
+    info = {"world": asdict(wp), "fleet": asdict(fp), "sensor": "exact" if fp.camera is None else "camera",
+            "sidewalk_width_m": world.sidewalk_width,
             "roads": len(world.roads), "submaps": len(records)}
     (gt / "world.json").write_text(json.dumps(info, indent=1))
     return records

@@ -7,6 +7,7 @@ from datetime import UTC, datetime, timedelta
 import numpy as np
 
 from fusion.eval.synth import shapes
+from fusion.eval.synth.camera import CameraSensor, Place, degrade
 from fusion.eval.synth.fleet import (
     FleetParams,
     SubmapRecord,
@@ -16,10 +17,12 @@ from fusion.eval.synth.fleet import (
     place_transients,
     route_options,
 )
-from fusion.eval.synth.visibility import visible_faces
+from fusion.eval.synth.visibility import FieldOfView, visible_faces
 from fusion.eval.synth.world import World
 from fusion.labels import NUM_CLASSES
 from fusion.types import Pose, SemanticMesh, Sigma
+
+CAMERA_STREAM = 0xCA  # seeds the camera's per-submap generators apart from the world's and the fleet's
 
 
 class _Context:
@@ -39,13 +42,13 @@ def _in_box(xy: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((xy >= lo) & (xy <= hi), axis=1)
 
 
-def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose: Pose, params: FleetParams,
-            rng: np.random.Generator) -> tuple[SemanticMesh, np.ndarray, dict[int, np.ndarray]]:
-    """The submap seen from ``sensors`` (k, 3) (map frame), in the local frame of ``pose`` (local → map).
-
-    Returns the noisy mesh, the GT ground faces seen and the faces seen of each part (by index).
-    """
-    r = params.sensor_range
+def _visible(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose: Pose, params: FleetParams,
+             max_range: float, fov: FieldOfView | None = None,
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[int, np.ndarray]]:
+    """What the sensors (k, 3) (map frame) see within ``max_range`` (and ``fov``): the submap's ground grid
+    vertices (map frame), the centres, faces and labels of its visible faces, the GT ground faces seen and
+    the faces seen of each part (by index)."""
+    r = max_range
     lo, hi = sensors[:, :2].min(axis=0) - r, sensors[:, :2].max(axis=0) + r
     mine = [i for i, p in enumerate(world.parts) if p.session in (None, session)
             and np.all(ctx.parts[i][2][:2] <= hi) and np.all(ctx.parts[i][3][:2] >= lo)]
@@ -53,15 +56,27 @@ def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose
     occluders = [q.footprint for q in my_parts if q.occluder and q.footprint is not None]  # occluders have one
     hidden = [q.footprint for q in my_parts if q.footprint is not None]
 
-    gv, gc, g_faces, g_labels = _seen_ground_mesh(world, sensors, pose, params, occluders, hidden)
+    gv, gc, g_faces, g_labels = _seen_ground_mesh(world, sensors, pose, params, occluders, hidden, r, fov)
     cand = np.flatnonzero(_in_box(ctx.ground_c[:, :2], lo, hi))
-    seen_ground = cand[visible_faces(ctx.ground_c[cand], ctx.ground_n[cand], sensors, r, occluders, hidden)]
+    seen_ground = cand[visible_faces(ctx.ground_c[cand], ctx.ground_n[cand], sensors, r, occluders, hidden, fov)]
     seen_parts = {}
     for i in mine:
         c, n = ctx.parts[i][:2]
-        idx = np.flatnonzero(visible_faces(c, n, sensors, r, occluders))
+        idx = np.flatnonzero(visible_faces(c, n, sensors, r, occluders, fov=fov))
         if len(idx):
             seen_parts[i] = idx
+    return gv, gc, g_faces, g_labels, seen_ground, seen_parts
+
+
+def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose: Pose, params: FleetParams,
+            rng: np.random.Generator) -> tuple[SemanticMesh, np.ndarray, dict[int, np.ndarray]]:
+    """The exact sensor's submap seen from ``sensors`` (k, 3) (map frame), in the local frame of ``pose``
+    (local → map): a crop of the world with white vertex and label noise and dropout discs.
+
+    Returns the noisy mesh, the GT ground faces seen and the faces seen of each part (by index).
+    """
+    gv, gc, g_faces, g_labels, seen_ground, seen_parts = _visible(world, ctx, session, sensors, pose, params,
+                                                                  params.sensor_range)
 
     # sensor dropouts: discs of the map where this submap has nothing
     n_drop = int(rng.integers(params.drops_per_submap[0], params.drops_per_submap[1] + 1))
@@ -82,11 +97,33 @@ def observe(world: World, ctx: _Context, session: int, sensors: np.ndarray, pose
     return _noisy_local_mesh(world, gv, g_faces, g_labels, seen_parts, pose, params, rng), seen_ground, seen_parts
 
 
+def observe_camera(world: World, ctx: _Context, session: int, sensors: np.ndarray, views: np.ndarray, pose: Pose,
+                   params: FleetParams, camera: CameraSensor, rng: np.random.Generator,
+                   ) -> tuple[SemanticMesh, np.ndarray, dict[int, np.ndarray]]:
+    """The camera's submap: what the front camera at ``sensors`` (k, 3) looking along ``views`` (k, 3, 3,
+    camera → map: forward, left, up; map frame) saw within its field of view and range, made by a
+    camera pipeline (``fusion.eval.synth.camera.degrade``), in the local frame of ``pose``.
+
+    Returns the mesh, the GT ground faces seen and the faces seen of each part (by index): the truth's
+    ``observed`` set is what the camera saw; its holes and missed labels count as errors.
+    """
+    fov = FieldOfView(views, camera.hfov_deg, camera.vfov_deg)
+    gv, _, g_faces, g_labels, seen_ground, seen_parts = _visible(world, ctx, session, sensors, pose, params,
+                                                                 camera.range_m, fov)
+    v, f, lab = _merge_seen(world, gv, g_faces, g_labels, seen_parts)
+    to_local = pose.inverse()
+    rotations = np.einsum("ij,kjl->kil", to_local.rotation(), views)
+    place = Place(v[f].mean(axis=1), world.params.seed)
+    mesh = degrade(to_local.apply(v), f, lab, to_local.apply(sensors), rotations, camera, rng, place)
+    return mesh, seen_ground, seen_parts
+
+
 def _seen_ground_mesh(world: World, sensors: np.ndarray, pose: Pose, params: FleetParams, occluders: list,
-                      hidden: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                      hidden: list, max_range: float, fov: FieldOfView | None,
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The ground the sensors see, re-triangulated on a grid of the submap's own frame: its vertices
     (map frame), the centres of the visible faces, those faces and their labels."""
-    r = params.sensor_range
+    r = max_range
     local_sensors = pose.inverse().apply(sensors)
     res = params.submap_res
     llo, lhi = local_sensors[:, :2].min(axis=0) - r, local_sensors[:, :2].max(axis=0) + r
@@ -94,15 +131,13 @@ def _seen_ground_mesh(world: World, sensors: np.ndarray, pose: Pose, params: Fle
     xy = pose.apply(np.column_stack([xy_local, np.zeros(len(xy_local))]))[:, :2]
     gv = np.column_stack([xy, world.ground_height(xy)])
     gc = gv[faces].mean(axis=1)
-    keep = visible_faces(gc, shapes.face_normals(gv, faces)[0], sensors, r, occluders, hidden)
+    keep = visible_faces(gc, shapes.face_normals(gv, faces)[0], sensors, r, occluders, hidden, fov)
     return gv, gc[keep], faces[keep], world.ground_label(gc[keep, :2])
 
 
-def _noisy_local_mesh(world: World, gv: np.ndarray, g_faces: np.ndarray, g_labels: np.ndarray,
-                      seen_parts: dict[int, np.ndarray], pose: Pose, params: FleetParams,
-                      rng: np.random.Generator) -> SemanticMesh:
-    """Ground and seen part faces merged into one mesh in the submap's local frame, with vertex noise
-    (``vertex_noise_m``) and label noise (``label_noise``: a wrong non-zero label)."""
+def _merge_seen(world: World, gv: np.ndarray, g_faces: np.ndarray, g_labels: np.ndarray,
+                seen_parts: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Seen ground faces and seen part faces as one mesh (map frame): vertices, faces, face labels."""
     pieces = [shapes.compact(gv, g_faces)]
     labels = [g_labels]
     for i, f in seen_parts.items():
@@ -110,7 +145,15 @@ def _noisy_local_mesh(world: World, gv: np.ndarray, g_faces: np.ndarray, g_label
         pieces.append(shapes.compact(part.vertices, part.faces[f]))
         labels.append(part.labels[f])
     v, f = shapes.merge(pieces)
-    lab = np.concatenate(labels).astype(np.int64)
+    return v, f, np.concatenate(labels).astype(np.int64)
+
+
+def _noisy_local_mesh(world: World, gv: np.ndarray, g_faces: np.ndarray, g_labels: np.ndarray,
+                      seen_parts: dict[int, np.ndarray], pose: Pose, params: FleetParams,
+                      rng: np.random.Generator) -> SemanticMesh:
+    """Ground and seen part faces merged into one mesh in the submap's local frame, with vertex noise
+    (``vertex_noise_m``) and label noise (``label_noise``: a wrong non-zero label)."""
+    v, f, lab = _merge_seen(world, gv, g_faces, g_labels, seen_parts)
     v = pose.inverse().apply(v) + rng.normal(scale=params.vertex_noise_m, size=v.shape)
     flip = rng.random(len(lab)) < params.label_noise
     lab[flip] = (lab[flip] - 1 + rng.integers(1, NUM_CLASSES - 1, size=int(flip.sum()))) % (NUM_CLASSES - 1) + 1
@@ -146,7 +189,13 @@ def drive(world: World, params: FleetParams, rng: np.random.Generator) -> list[S
         nominal = params.submap_length
         for seq, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
             sensors = path[a : b + 1 : 10] + np.array([0.0, 0.0, params.sensor_height])
-            mesh, seen_ground, seen_parts = observe(world, ctx, k, sensors, poses[a], params, rng)
+            if params.camera is None:
+                mesh, seen_ground, seen_parts = observe(world, ctx, k, sensors, poses[a], params, rng)
+            else:  # its own generator per submap: each submap's camera errors are reproducible alone
+                views = np.stack([p.rotation() for p in poses[a : b + 1 : 10]])
+                camera_rng = np.random.default_rng([world.params.seed, CAMERA_STREAM, k, seq])
+                mesh, seen_ground, seen_parts = observe_camera(world, ctx, k, sensors, views, poses[a], params,
+                                                               params.camera, camera_rng)
             if seq > 0:
                 length = 0.25 * (a - bounds[seq - 1])
                 rel = poses[bounds[seq - 1]].inverse().compose(poses[a])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 Rect = tuple[float, float, float, float, float]  # cx, cy, half_length, half_width, yaw
@@ -47,15 +49,38 @@ def segments_blocked(origin: np.ndarray, targets: np.ndarray, rects: list[Rect],
     return blocked
 
 
+@dataclass(frozen=True)
+class FieldOfView:
+    """A forward-looking camera at each sensor position: ``rotations`` (k, 3, 3) camera → map, columns
+    forward, left, up (map frame); a rectangular pinhole field of view of ``hfov_deg`` × ``vfov_deg``
+    degrees (full angles) about the forward axis."""
+
+    rotations: np.ndarray
+    hfov_deg: float
+    vfov_deg: float
+
+
+def in_frustum(local: np.ndarray, hfov_deg: float, vfov_deg: float) -> np.ndarray:
+    """Whether camera-frame directions (n, 3) (x forward, y left, z up) lie inside a pinhole field of view
+    of ``hfov_deg`` × ``vfov_deg`` degrees (full angles)."""
+    x = local[:, 0]
+    return ((x > 0) & (np.abs(local[:, 1]) <= x * np.tan(np.radians(hfov_deg) / 2))
+            & (np.abs(local[:, 2]) <= x * np.tan(np.radians(vfov_deg) / 2)))
+
+
 def visible_faces(centroids: np.ndarray, normals: np.ndarray, sensors: np.ndarray, max_range: float,
-                  occluders: list[Rect], hidden: list[Rect] | None = None) -> np.ndarray:
+                  occluders: list[Rect], hidden: list[Rect] | None = None,
+                  fov: FieldOfView | None = None) -> np.ndarray:
     """Mask of faces seen from at least one sensor position (k, 3): within ``max_range`` metres,
-    facing the sensor, not behind an occluder, and (for ground faces) not under a ``hidden`` footprint."""
+    facing the sensor, not behind an occluder, (for ground faces) not under a ``hidden`` footprint, and
+    with a ``fov``, inside that camera's field of view (``fov.rotations[k]`` at ``sensors[k]``)."""
     seen = np.zeros(len(centroids), bool)
-    for p in sensors:
+    for k, p in enumerate(sensors):
         diff = p - centroids
         dist = np.linalg.norm(diff, axis=1)
         idx = np.flatnonzero(~seen & (dist <= max_range) & (np.einsum("ij,ij->i", diff, normals) > 0))
+        if fov is not None and len(idx):
+            idx = idx[in_frustum(-diff[idx] @ fov.rotations[k], fov.hfov_deg, fov.vfov_deg)]
         if len(idx) == 0:
             continue
         near = [r for r in occluders if np.hypot(r[0] - p[0], r[1] - p[1]) < max_range + r[2] + r[3]]
