@@ -302,7 +302,9 @@ def serve_until_stopped(proc: subprocess.Popen[bytes], base: str) -> int:
     def interrupt(_signum: int, _frame: Any) -> None:
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    # both handled explicitly: a process started in the background of a non-interactive shell inherits
+    # SIGINT *ignored*, and Python then never raises KeyboardInterrupt for it
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         print(f"\nviewer: {base}/ (serving; Ctrl-C stops it)", flush=True)
         code = proc.wait()
@@ -312,7 +314,8 @@ def serve_until_stopped(proc: subprocess.Popen[bytes], base: str) -> int:
         print("stopping the service ...", flush=True)
         return 0
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def evaluate(
