@@ -54,7 +54,7 @@ TILESET_RESPONSES: dict[int | str, dict[str, Any]] = {
         "content": {"application/json": {"schema": {"type": "object"}}},
     },
     304: _NOT_MODIFIED,
-    **problem_responses(401, 403, 503),
+    **problem_responses(401, 403, 422, 503),
 }
 
 
