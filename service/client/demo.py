@@ -39,7 +39,8 @@ SERVER_START_S = 90.0
 # The driven streets (map frame x/y, metres): 40 m around the corner where tiles (0,0), (1,0), (0,1) and
 # (1,1) of 64 m meet. The sensors see ~25 m beyond them, so the four tiles share the data and no tile is
 # only grazed: a region of four tiles aligned jointly, four reconstructions, seams in both directions, in
-# a few minutes on 2 cores (the bench's world, one 64 m tile driven through, touches nine).
+# about 3 minutes on 2 cores (the bench's world, one 64 m tile driven through, touches nine tiles, five
+# of them only along their edges).
 DEMO_CORE = ((44.0, 44.0), (84.0, 84.0))
 
 
@@ -56,6 +57,8 @@ def _prepare_out(out: Path) -> None:
             raise SystemExit(f"{out} is not empty and not a fleetmap demo folder; choose another --out")
         for name in ("data", "sim", "meshes"):
             shutil.rmtree(out / name, ignore_errors=True)
+        for name in ("map.png", "poses.json"):  # a failed run must not leave the previous run's results
+            (out / name).unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / MARKER).write_text("written by `fleetmap demo`; safe to delete\n")
 
