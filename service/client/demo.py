@@ -39,7 +39,8 @@ SERVER_START_S = 90.0
 # The driven streets (map frame x/y, metres): 40 m around the corner where tiles (0,0), (1,0), (0,1) and
 # (1,1) of 64 m meet. The sensors see ~25 m beyond them, so the four tiles share the data and no tile is
 # only grazed: a region of four tiles aligned jointly, four reconstructions, seams in both directions, in
-# a few minutes on 2 cores (the bench's world, one 64 m tile driven through, touches nine).
+# about 3 minutes on 2 cores (the bench's world, one 64 m tile driven through, touches nine tiles, five
+# of them only along their edges).
 DEMO_CORE = ((44.0, 44.0), (84.0, 84.0))
 
 
@@ -56,12 +57,15 @@ def _prepare_out(out: Path) -> None:
             raise SystemExit(f"{out} is not empty and not a fleetmap demo folder; choose another --out")
         for name in ("data", "sim", "meshes"):
             shutil.rmtree(out / name, ignore_errors=True)
+        for name in ("map.png", "poses.json"):  # a failed run must not leave the previous run's results
+            (out / name).unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / MARKER).write_text("written by `fleetmap demo`; safe to delete\n")
 
 
 def start_server(out: Path, preset: str, debounce_s: float, port: int = 0) -> tuple[subprocess.Popen[bytes], str]:
-    """``fleetmap serve`` (embedded) on ``port`` (0: a free one); returns the process and its base URL."""
+    """``fleetmap serve`` (embedded) on ``port`` (0: a free one), started: returns the process and its
+    base URL at once (``wait_until_up`` waits for it: it starts while the fleet is simulated)."""
     port = port or _free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")}
     env.update(
@@ -81,18 +85,21 @@ def start_server(out: Path, preset: str, debounce_s: float, port: int = 0) -> tu
             stderr=subprocess.STDOUT,
             start_new_session=True,
         )
-    base = f"http://127.0.0.1:{port}"
+    return proc, f"http://127.0.0.1:{port}"
+
+
+def wait_until_up(proc: subprocess.Popen[bytes], base: str, out: Path) -> None:
+    """Wait for ``GET /healthz``; a one-line error if the server exits or does not answer in time."""
     deadline = time.monotonic() + SERVER_START_S
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise SystemExit(f"fleetmap serve exited ({proc.returncode}); see {out / 'serve.log'}")
         try:
             if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
-                return proc, base
+                return
         except httpx.HTTPError:
             pass
         time.sleep(0.3)
-    stop_server(proc)
     raise SystemExit(f"fleetmap serve did not start within {SERVER_START_S:.0f} s; see {out / 'serve.log'}")
 
 
@@ -222,15 +229,18 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out.resolve()
     _prepare_out(out)
     t0 = time.monotonic()
-    print(f"1/6 simulating {args.sessions} sessions (seed {args.seed}, {args.sensor} sensor) ...", flush=True)
-    records, truth = _simulate(out / "sim", args.seed, args.sessions, args.sensor)
-    print(f"    {len(records)} submaps, {sum(len(r.mesh.faces) for r in records):,} faces")
-    print("2/6 starting the embedded service (fleetmap serve + embedded worker) ...", flush=True)
-    proc, base = start_server(out, args.preset, args.debounce, args.port)
+    proc, base = start_server(out, args.preset, args.debounce, args.port)  # starts while the fleet drives
     try:
+        print(f"1/6 simulating {args.sessions} sessions (seed {args.seed}, {args.sensor} sensor) ...", flush=True)
+        records, truth = _simulate(out / "sim", args.seed, args.sessions, args.sensor)
+        print(f"    {len(records)} submaps, {sum(len(r.mesh.faces) for r in records):,} faces")
+        print("2/6 starting the embedded service (fleetmap serve + embedded worker) ...", flush=True)
+        wait_until_up(proc, base, out)
+        started = time.monotonic() - t0
         with httpx.Client(base_url=base, timeout=60) as client:
             print(f"    {base} (auth off, preset {args.preset}, debounce {args.debounce:g} s)")
             report = _run(client, out, records, truth, args.timeout)
+        report["timings"] = {"simulation and start": started} | report["timings"]
         print_report(report, out, time.monotonic() - t0)
         if args.serve:
             return serve_until_stopped(proc, base)
