@@ -36,7 +36,7 @@ from scipy.special import ndtri
 from fusion.eval.synth import shapes
 from fusion.eval.synth.visibility import in_frustum
 from fusion.labels import LABEL_BY_NAME
-from fusion.types import SemanticMesh
+from fusion.types import Pose, SemanticMesh
 
 FEATURES = 32  # random Fourier features per field: enough for a near-Gaussian marginal
 SYSTEMATIC_STREAM = 0x5E6  # seeds the world-fixed part of the segmenter's errors
@@ -55,20 +55,22 @@ class CameraSensor:
     hfov_deg: float = 90.0  # horizontal field of view (full angle): a typical automotive front camera
     vfov_deg: float = 50.0  # vertical field of view (full angle) about the vehicle's forward axis: at 1.6 m
     # height the ground is seen from 3.4 m ahead, a wall 10 m away up to 6 m
-    range_m: float = 30.0  # farthest surface mapped (a 0.2 m voxel occupancy network's volume ends about there)
+    range_m: float = 20.0  # farthest surface mapped: monocular depth beyond it is too poor to keep
 
     # -- depth: smooth, range-dependent error along the viewing ray ---------------------------
     depth_sigma_10m: float = 0.15  # σ of the depth error at 10 m range (1.5 %, after fusing a submap's frames)
-    depth_exponent: float = 1.5  # σ(ρ) = depth_sigma_10m · (ρ / 10 m)^exponent: between learned monocular
-    # depth (relative error, exponent 1) and triangulation from motion (exponent 2); 0.42 m at 20 m, 0.78 m at 30 m
+    depth_exponent: float = 1.0  # σ(ρ) = depth_sigma_10m · (ρ / 10 m)^exponent: 1, a constant relative error
+    # (learned monocular depth, its scale held by the known camera height); 2 would be triangulation from motion
     depth_corr_m: float = 4.0  # correlation length of the depth-error field: networks are wrong in patches
+    depth_systematic: float = 0.0  # share of the depth-error field fixed to the place (misjudged alike every pass)
     white_noise_m: float = 0.02  # independent per-vertex noise (0.2 m voxels / mesh quantisation)
 
     # -- monocular drift inside the local map, about the submap origin ------------------------
     scale_sigma: float = 0.01  # σ of the per-submap scale error (1 %: scale held by the known camera height)
-    bend_yaw_deg_per_m: float = 0.01  # σ of the heading drift rate κ: a point x metres ahead moves κ x² / 2
-    # sideways (0.14 m at 40 m), a visual odometry's slow yaw drift inside the local map
-    bend_pitch_deg_per_m: float = 0.01  # σ of the pitch drift rate: the map curls up or down ahead alike
+    bend_yaw_deg_per_m: float = 0.015  # σ of the heading drift rate κ: a point x metres ahead moves κ x² / 2
+    # sideways (0.21 m at 40 m), a visual odometry's slow yaw drift inside the local map
+    bend_pitch_deg_per_m: float = 0.02  # σ of the pitch drift rate: the map curls up or down ahead (0.28 m at
+    # 40 m); pitch is the worse-observed angle of a forward camera
 
     # -- the segmenter ------------------------------------------------------------------------
     label_corr_m: float = 1.5  # size of the segmenter's error patches (correlation length)
@@ -78,13 +80,15 @@ class CameraSensor:
     # few pixels, 0.2 m voxels, depth smeared across object edges) ...
     bleed_prob: float = 0.7  # ... in this share of the border (patches along it)
     # (true class, labelled as, rate): the segmenter labels ``rate`` of the true class's surface as the other,
-    # between classes that look alike and meet; directed (a wall is rarely called a fence, a fence often a
-    # wall). Camera occupancy networks do far worse than these (road IoU ~0.5 on SSCBench-KITTI-360).
+    # between classes that look alike and meet. Directed, and mostly from the smaller class into the larger:
+    # a sidewalk is often taken for road, a road rarely for sidewalk (a large class mislabelled into a small
+    # one at any rate would swamp it, and no trained segmenter does that).
     confusion: tuple[tuple[str, str, float], ...] = (
-        ("road", "sidewalk", 0.15), ("sidewalk", "road", 0.20),
-        ("sidewalk", "terrain", 0.15), ("terrain", "sidewalk", 0.08),
-        ("terrain", "vegetation", 0.25), ("vegetation", "terrain", 0.25),
-        ("fence", "building", 0.30), ("obstacle", "vehicle", 0.15), ("traffic_sign", "pole", 0.25),
+        ("road", "sidewalk", 0.03), ("sidewalk", "road", 0.15),
+        ("sidewalk", "terrain", 0.10), ("terrain", "sidewalk", 0.03),
+        ("terrain", "vegetation", 0.05), ("vegetation", "terrain", 0.20),
+        ("fence", "building", 0.10), ("fence", "vegetation", 0.10),
+        ("obstacle", "vehicle", 0.05), ("traffic_sign", "pole", 0.25),
     )
     # (thin class, miss rate): missed surface takes the class around it (markings: road); a 0.2 m marking
     # or a 0.1–0.25 m pole is one voxel or less wide, and faded or far markings vanish in the image
@@ -128,6 +132,29 @@ def patches(points: np.ndarray, rate: float, length_m: float, rng: np.random.Gen
     return g < ndtri(min(rate, 1.0)) if rate > 0.0 else np.zeros(len(points), bool)
 
 
+@dataclass
+class Place:
+    """Where a submap lies in the world, for the errors a camera pipeline repeats on every pass over the
+    same place (its appearance fools it the same way): ``to_map`` the submap's true pose (local → map),
+    ``seed`` the world's."""
+
+    to_map: Pose
+    seed: int
+
+
+def mixed_field(points: np.ndarray, length_m: float, rng: np.random.Generator, place: Place | None, share: float,
+                key: tuple[int, ...]) -> np.ndarray:
+    """A unit ``random_field`` at ``points`` (n, 3) (the submap's true local frame): this submap's own part
+    (``rng``) mixed with, given a ``place``, a part fixed to the world (drawn from its seed and ``key`` at the
+    points' map-frame positions, the same for every submap) holding a share ``share`` of the variance."""
+    g = random_field(points, length_m, rng)
+    if place is None or share <= 0.0:
+        return g
+    shared = random_field(place.to_map.apply(points), length_m, np.random.default_rng([place.seed, SYSTEMATIC_STREAM,
+                                                                                       *key]))
+    return np.sqrt(1.0 - share) * g + np.sqrt(share) * shared
+
+
 # -- geometry ---------------------------------------------------------------------------------------
 def observing_camera(vertices: np.ndarray, cameras: np.ndarray, rotations: np.ndarray, cam: CameraSensor,
                      ) -> np.ndarray:
@@ -144,15 +171,16 @@ def observing_camera(vertices: np.ndarray, cameras: np.ndarray, rotations: np.nd
 
 
 def depth_error(vertices: np.ndarray, cameras: np.ndarray, rotations: np.ndarray, cam: CameraSensor,
-                rng: np.random.Generator) -> np.ndarray:
+                rng: np.random.Generator, place: Place | None = None) -> np.ndarray:
     """``vertices`` moved along their viewing rays by σ(ρ) · g(x): σ grows with the range ρ from the
     observing camera (``depth_sigma_10m``, ``depth_exponent``), g is a smooth unit field
-    (``depth_corr_m``). Local frame, metres."""
+    (``depth_corr_m``; given a ``place``, a share ``depth_systematic`` of it fixed to the world). Local
+    frame, metres."""
     origin = cameras[observing_camera(vertices, cameras, rotations, cam)]
     ray = vertices - origin
     rho = np.maximum(np.linalg.norm(ray, axis=1), 1e-6)
     sigma = cam.depth_sigma_10m * (rho / 10.0) ** cam.depth_exponent
-    g = random_field(vertices, cam.depth_corr_m, rng)
+    g = mixed_field(vertices, cam.depth_corr_m, rng, place, cam.depth_systematic, (0,))
     return vertices + (sigma * g / rho)[:, None] * ray
 
 
@@ -170,16 +198,6 @@ def drift(vertices: np.ndarray, cam: CameraSensor, rng: np.random.Generator) -> 
 
 
 # -- the segmenter --------------------------------------------------------------------------------
-@dataclass
-class Place:
-    """Where a submap's faces lie in the world, for the segmenter's systematic errors: ``centroids`` (m, 3)
-    the faces' centres in the map frame (metres), ``seed`` the world's (its error fields are the same for
-    every submap, so every pass over a place makes the same part of its mistakes there)."""
-
-    centroids: np.ndarray
-    seed: int
-
-
 def _label_id(name: str) -> int:
     return LABEL_BY_NAME[name].id
 
@@ -190,11 +208,7 @@ def error_patches(centroids: np.ndarray, idx: np.ndarray, rate: float, length_m:
     blobs of about ``length_m``. The field mixes this submap's own part (``rng``) and, given a ``place``, a
     part fixed to the world (a share ``label_systematic`` of its variance, drawn from the world's seed and
     the error's ``key``); the mix keeps unit variance, so ``rate`` holds either way."""
-    g = random_field(centroids[idx], length_m, rng)
-    if place is not None and cam.label_systematic > 0.0:
-        world_rng = np.random.default_rng([place.seed, SYSTEMATIC_STREAM, *key])
-        shared = random_field(place.centroids[idx], length_m, world_rng)
-        g = np.sqrt(1.0 - cam.label_systematic) * g + np.sqrt(cam.label_systematic) * shared
+    g = mixed_field(centroids[idx], length_m, rng, place, cam.label_systematic, key)
     return g < ndtri(min(rate, 1.0)) if rate > 0.0 else np.zeros(len(idx), bool)
 
 
@@ -270,11 +284,11 @@ def degrade(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, cameras
     """The submap a camera pipeline makes of the true surface it saw: ``vertices`` (n, 3) and ``faces``
     (m, 3) in the submap's local frame with true face ``labels``; ``cameras`` (k, 3) the camera positions
     and ``rotations`` (k, 3, 3) their orientations (camera → local: forward, left, up); ``place`` where the
-    faces lie in the world (without it the segmenter's errors are all this submap's own). Labels from the
+    submap lies in the world (without it every error is this submap's own). Labels from the
     segmenter, vertices moved by depth error, noise and drift, holes cut (unused vertices dropped)."""
     centroids = vertices[faces].mean(axis=1)
     out_labels = segment(centroids, np.asarray(labels, np.int64), cam, rng, place)
-    v = depth_error(vertices, cameras, rotations, cam, rng)
+    v = depth_error(vertices, cameras, rotations, cam, rng, place)
     v = v + rng.normal(scale=cam.white_noise_m, size=v.shape)
     v = drift(v, cam, rng)
     keep = ~patches(centroids, cam.hole_rate, cam.hole_size_m, rng)

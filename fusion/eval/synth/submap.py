@@ -113,7 +113,7 @@ def observe_camera(world: World, ctx: _Context, session: int, sensors: np.ndarra
     v, f, lab = _merge_seen(world, gv, g_faces, g_labels, seen_parts)
     to_local = pose.inverse()
     rotations = np.einsum("ij,kjl->kil", to_local.rotation(), views)
-    place = Place(v[f].mean(axis=1), world.params.seed)
+    place = Place(pose, world.params.seed)
     mesh = degrade(to_local.apply(v), f, lab, to_local.apply(sensors), rotations, camera, rng, place)
     return mesh, seen_ground, seen_parts
 

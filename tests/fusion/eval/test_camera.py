@@ -17,6 +17,7 @@ from fusion.eval.synth.visibility import FieldOfView, visible_faces
 from fusion.eval.synth.world import WorldParams
 from fusion.labels import LABEL_BY_NAME
 from fusion.meshio import read_submap_ply
+from fusion.types import Pose
 
 TINY_WORLD = {"core_max": (32.0, 32.0), "margin": 14.0, "ground_res": 0.5}
 TINY_FLEET = {"submap_length": 15.0, "sensor_range": 14.0, "submap_res": 0.6}
@@ -267,7 +268,7 @@ def test_systematic_share_repeats_the_same_mistakes_on_every_pass() -> None:
     v, f = _grid(size=40.0)
     c = v[f].mean(axis=1)
     labels = np.full(len(f), L["road"])
-    place = cm.Place(c + [100.0, 50.0, 0.0], seed=7)  # the same faces, seen by two submaps
+    place = cm.Place(Pose(np.array([100.0, 50.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])), seed=7)  # seen by two submaps
 
     def agreement(share: float) -> float:
         cam = replace(NO_ERRORS, confusion=(("road", "sidewalk", 0.3),), label_systematic=share)
@@ -277,6 +278,22 @@ def test_systematic_share_repeats_the_same_mistakes_on_every_pass() -> None:
 
     assert agreement(1.0) == 1.0
     assert agreement(0.0) < 0.35 < agreement(0.7) < 1.0
+
+
+def test_systematic_depth_share_repeats_the_same_depth_error() -> None:
+    v, _ = _grid(size=20.0, step=1.0, x0=5.0)
+    v[:, 2] = -1.6
+    place = cm.Place(Pose(np.array([30.0, -20.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])), seed=7)
+
+    def passes(share: float) -> tuple[np.ndarray, np.ndarray]:
+        cam = replace(NO_ERRORS, depth_sigma_10m=0.2, depth_systematic=share)
+        return tuple(cm.depth_error(v, np.zeros((1, 3)), FORWARD, cam, np.random.default_rng(k), place) - v
+                     for k in (1, 2))  # type: ignore[return-value]
+
+    a, b = passes(1.0)
+    assert np.allclose(a, b) and np.abs(a).max() > 0.05
+    a, b = passes(0.0)
+    assert np.corrcoef(a.ravel(), b.ravel())[0, 1] < 0.5
 
 
 # -- holes and the whole pipeline -----------------------------------------------------------------
