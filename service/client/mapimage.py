@@ -172,7 +172,8 @@ def render(data: MapData, out: Path, title: str | None = None) -> Path:
     for y in np.arange(y0, y1 + s / 2, s):
         ax.axhline(y, color="0.35", lw=0.6, zorder=2)
     for i, j in data.tiles:
-        ax.text(i * s + 1.5, j * s + 1.5, f"({i},{j})", fontsize=7, color="0.2", zorder=3)
+        ax.text(i * s + 1.5, j * s + 1.5, f"({i},{j})", fontsize=7, color="0.2", zorder=3,
+                bbox={"facecolor": "white", "alpha": 0.75, "linewidth": 0, "pad": 1.0})
     halo = [effects.withStroke(linewidth=3.0, foreground="white")]
     handles: list[Any] = []
     colours = [plt.get_cmap("tab10")(k) for k in range(10)]
