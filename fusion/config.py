@@ -115,6 +115,7 @@ class FusionConfig:
     extract_block: int = 4  # coarse narrow-band block, in voxels
     extract_band: float = 0.75  # refine blocks with a corner |s| below this × block diagonal (or a sign change)
     extract_chunk: int = 65536
+    extract_support_m: float = 1.0  # confidence 0 farther than this from every posed input point (0: off)
     face_labels: str = "centroid"  # "centroid": semantic head at each face's centroid; "vertices": majority
     # run
     seed: int = 0
@@ -149,6 +150,7 @@ class FusionConfig:
                 consensus=False,
                 c_th=0.5,  # a few iterations leave confidences lower than a full schedule does
                 extract_voxel_m=1.0,
+                extract_support_m=2.0,  # two of its 1 m voxels
                 tile_margin_m=2.0,
                 align_iterations_per_tile=10,
                 align_incremental_iterations_per_tile=5,
@@ -173,6 +175,30 @@ class FusionConfig:
                 extract_chunk=262_144,
             )
         raise ValueError(f"unknown preset {name!r} ({', '.join(PRESETS)})")
+
+    def with_overrides(self, items: list[str]) -> FusionConfig:
+        """This config with ``KEY=VALUE`` overrides (the bench's ``--set``), each value parsed as the
+        field's type; raises ``ValueError`` naming an unknown key or a value that does not parse."""
+        types = {f.name: f.type for f in fields(FusionConfig)}
+        changes: dict[str, Any] = {}
+        for item in items:
+            key, sep, text = item.partition("=")
+            key = key.strip()
+            if not sep or key not in types:
+                raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY a FusionConfig field")
+            kind = str(types[key])
+            try:
+                if kind == "bool":
+                    if text.lower() not in ("true", "false", "1", "0"):
+                        raise ValueError(text)
+                    changes[key] = text.lower() in ("true", "1")
+                elif kind in ("int", "float", "str"):
+                    changes[key] = {"int": int, "float": float, "str": str}[kind](text)
+                else:  # tuple[float, ...]
+                    changes[key] = tuple(float(v) for v in text.split(",") if v.strip())
+            except ValueError:
+                raise ValueError(f"--set {item!r}: {text!r} is not a valid {kind}") from None
+        return replace(self, **changes)
 
     def with_(self, **changes: Any) -> FusionConfig:
         return replace(self, **changes)

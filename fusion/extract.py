@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from fusion.tiles import lattice_range
@@ -272,6 +273,21 @@ def _border_attrs(verts_idx: np.ndarray, lat: Lattice, border: dict[str, dict[st
     return seam
 
 
+def supported_attrs(attr_fn: AttrFn, support: np.ndarray, radius_m: float) -> AttrFn:
+    """``attr_fn`` with confidence 0 wherever no point of ``support`` (map frame, the posed input
+    surfaces) lies within ``radius_m``: the field is only trained near the data, and far from it (beyond
+    the space samples' boxes, or behind a hash collision) its confidence is whatever the grid makes of
+    it. A surface is reported only where some submap saw one; holes up to ~2 × ``radius_m`` are filled."""
+    tree = cKDTree(np.asarray(support, np.float64))
+
+    def fn(x_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        conf, labels = attr_fn(x_map)
+        far = ~np.isfinite(tree.query(x_map, k=1, distance_upper_bound=radius_m)[0])
+        return np.where(far, 0.0, conf).astype(np.asarray(conf).dtype), labels
+
+    return fn
+
+
 def _face_labels(vl: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a, b, c = vl[faces[:, 0]], vl[faces[:, 1]], vl[faces[:, 2]]
     return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
@@ -289,6 +305,8 @@ def extract_mesh(
     border_pins: Any = None,
     step: StepFn | None = None,
     face_labels: str = "vertices",
+    support: np.ndarray | None = None,
+    support_m: float = 0.0,
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
@@ -296,8 +314,12 @@ def extract_mesh(
     border planes (after pinning) and stats. Face normals (right-hand winding) point to free space.
     Face labels: ``"vertices"`` the majority of the vertex labels, ``"centroid"`` the label at the
     face's centroid (one more query per face; keeps structures narrower than a voxel, e.g. lane
-    markings, that fall between vertices).
+    markings, that fall between vertices). ``support`` (n, 3) map-frame input surface points and
+    ``support_m`` > 0: confidence is 0 farther than ``support_m`` from every one (``supported_attrs``),
+    on seam planes too, so neighbours still agree.
     """
+    if support is not None and support_m > 0:
+        attr_fn = supported_attrs(attr_fn, support, support_m)
     if face_labels not in ("vertices", "centroid"):
         raise ValueError(f"face_labels must be 'vertices' or 'centroid', got {face_labels!r}")
     lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)

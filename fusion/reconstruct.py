@@ -238,6 +238,8 @@ def _extract(
         config.c_th,
         border_pins,
         face_labels=config.face_labels,
+        support=_posed_pool(problem).double().cpu().numpy() + problem.origin,
+        support_m=config.extract_support_m,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
 

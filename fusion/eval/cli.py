@@ -115,10 +115,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if unknown:
         return _fail(f"unknown bench rows {unknown} (known: {', '.join(known)})")
     config = None
-    if args.iterations or args.align_iterations:  # CPU-time knobs of the multi-tile bench (reported in its JSON)
+    if args.iterations or args.align_iterations or args.set:  # knobs of the bench (its JSON records the config)
         from fusion.config import FusionConfig
 
         base = FusionConfig.preset(args.preset)
+        try:
+            base = base.with_overrides(args.set)
+        except ValueError as exc:
+            return _fail(str(exc))
         config = base.with_(iterations=args.iterations or base.iterations,
                             align_iterations_per_tile=args.align_iterations or base.align_iterations_per_tile)
     gps_noise = (args.gps_noise_m, args.gps_noise_deg)
@@ -185,6 +189,9 @@ def register(subparsers: Any) -> None:
                    help="reconstruction iterations per tile (default: the preset's)")
     p.add_argument("--align-iterations", type=_positive_int, default=None,
                    help="alignment iterations per tile of the region (default: the preset's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a fusion configuration field (repeatable; fusion.config.FusionConfig), "
+                        "e.g. --set extract_support_m=0 for an ablation")
     p.add_argument("--throughput", action="store_true",
                    help="only measure field training throughput (points/s forward+backward, fusion.eval.perf)")
     from fusion.eval.ablations import add_bench_arguments

@@ -178,3 +178,22 @@ def test_borders_without_attributes_still_pin_the_sdf() -> None:
     b, _, stats = extract_mesh(wavy(0.1), confident, TileSpec(1, 0, 8.0), (-2.0, 4.0), 0.25, border_pins=old)
     assert stats["pinned"] > 0
     assert np.abs(_seam(a, 8.0) - _seam(b, 8.0)).max() < 1e-5
+
+
+def test_surface_far_from_every_input_point_is_dropped_and_seams_still_agree() -> None:
+    """A confident field everywhere (as an untrained grid is beyond the data): with support points only on
+    the strip x < 5 m, the wavy surface is kept within ``support_m`` of them and nowhere else; the seam
+    plane of the neighbour at x = 8 m carries the same zero confidence, so both tiles drop it alike."""
+    xy = np.stack(np.meshgrid(np.arange(0.0, 5.0, 0.2), np.arange(0.0, 8.0, 0.2), indexing="ij"), -1).reshape(-1, 2)
+    support = np.column_stack([xy, np.zeros(len(xy))])
+    support[:, 2] = -wavy()(support)  # on the surface (wavy: s = z - h(x, y))
+    full, _, _ = extract_mesh(wavy(), confident, TileSpec(0, 0, 8.0), (-1.0, 3.0), 0.25)
+    kept, border, _ = extract_mesh(wavy(), confident, TileSpec(0, 0, 8.0), (-1.0, 3.0), 0.25,
+                                   support=support, support_m=1.0)
+    assert full.vertices[:, 0].max() > 7.9  # without support every confident face stays
+    assert 0 < len(kept.faces) < len(full.faces)
+    assert kept.vertices[:, 0].max() <= 5.0 + 1.0 + 0.25  # support strip + radius (+ one voxel of faces)
+    assert kept.vertices[:, 0].min() < 0.1
+    assert np.nanmax(border["x1"]["conf"]) == 0.0  # the seam plane says "no surface" to the neighbour
+    b, _, _ = extract_mesh(wavy(), confident, TileSpec(1, 0, 8.0), (-1.0, 3.0), 0.25, border_pins=border)
+    assert len(_seam(b, 8.0)) == 0  # the neighbour (confident everywhere itself) drops the seam too
