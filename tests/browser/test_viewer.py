@@ -10,6 +10,7 @@ page, connects with a token typed into the token box and reads the page through 
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import socket
 import threading
@@ -130,10 +131,17 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 
     app = create_app(settings, migrate=False, background=False)
     meshes = MeshRequests(app)
+    with serving(meshes) as url:
+        yield Server(url, app, tokens, meshes, fused)
+
+
+@contextlib.contextmanager
+def serving(app: Any) -> Iterator[str]:
+    """``app`` under uvicorn on a free loopback port (a thread); yields its base URL."""
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    uv = uvicorn.Server(uvicorn.Config(meshes, log_level="warning", lifespan="on"))
+    uv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
     thread = threading.Thread(target=uv.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 20
@@ -141,7 +149,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
         assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
         time.sleep(0.05)
     try:
-        yield Server(f"http://127.0.0.1:{port}/", app, tokens, meshes, fused)
+        yield f"http://127.0.0.1:{port}/"
     finally:
         uv.should_exit = True
         thread.join(timeout=10)
@@ -408,3 +416,21 @@ def test_live_refresh_shows_a_new_version(chromium_driver: Any, server: Server) 
     }
     assert ("/v1/tiles/1/0/mesh", 200) in server.meshes.seen[-1:]
     assert console_errors(chromium_driver) == []
+
+
+def test_without_auth_the_viewer_connects_with_no_token(chromium_driver: Any, tmp_path: Path) -> None:
+    """``FLEETMAP_AUTH=off`` (``fleetmap demo``): the page says so and the viewer shows the map at once."""
+    settings = Settings(data_dir=tmp_path / "data", database_url=f"sqlite:///{tmp_path / 'f.db'}", broker_url="",
+                        auth="off")
+    setup = create_app(settings, migrate=True, background=False)
+    with TestClient(setup) as client:
+        upload_at(client, {}, 20.0, 30.0, 0, "veh-042/a")
+        publish_version(setup, 0, 0, 1, street(0, 0))
+    with serving(create_app(settings, migrate=False, background=False)) as url:
+        chromium_driver.get(url + "#view=32,32,80")
+        chromium_driver.execute_script("localStorage.clear()")
+        chromium_driver.refresh()
+        wait_for(chromium_driver, "window.fleetmapViewer && window.fleetmapViewer.ready && window.fleetmapViewer.tilesLoaded === 1")
+        settle(chromium_driver)
+        assert count_colour(canvas_pixels(chromium_driver), ROAD.color) > 2000
+        assert console_errors(chromium_driver) == []

@@ -81,7 +81,10 @@ def get_metrics(db: SessionDep) -> Response:
 
 
 @router.get("/", operation_id="viewer", response_class=HTMLResponse)
-def viewer() -> HTMLResponse:
-    """The web viewer: tile states and mesh downloads."""
+def viewer(settings: SettingsDep) -> HTMLResponse:
+    """The web viewer (a 3D map of the fused tiles). The page's ``fleetmap-auth`` meta tag says whether
+    the API wants a token (``off``: the viewer connects without asking for one, e.g. ``fleetmap demo``)."""
     page = resources.files("service.api").joinpath("static/index.html").read_text(encoding="utf-8")
-    return HTMLResponse(page)
+    mode = "on" if settings.auth_enabled else "off"
+    return HTMLResponse(page.replace('<meta name="fleetmap-auth" content="on">',
+                                     f'<meta name="fleetmap-auth" content="{mode}">', 1))

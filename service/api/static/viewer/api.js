@@ -47,6 +47,13 @@ export async function request(path, { method = "GET", headers = {}, body, cache 
   return resp;
 }
 
+/** Whether the service wants no token (FLEETMAP_AUTH=off, e.g. `fleetmap demo`): the page served at `/`
+ * says so in its `fleetmap-auth` meta tag; then the viewer connects without asking for one. */
+export function authIsOff() {
+  const meta = document.querySelector('meta[name="fleetmap-auth"]');
+  return Boolean(meta && meta.content === "off");
+}
+
 export async function getJson(path) {
   return (await request(path)).json();
 }
