@@ -293,4 +293,5 @@ def _update_consensus(t: _Tile, region: torch.Tensor, config: FusionConfig) -> N
     """Cross-session confidence targets of a tile's pool at the current region poses."""
     session = torch.as_tensor(t.problem.pool_session, device=t.problem.pool.points.device)
     t.problem.pool.conf_target = consensus_targets(_posed(t, region), session, config.consensus_radius_m,
-                                                   config.consensus_cover_m)
+                                                   config.consensus_cover_m, keep_fraction=config.consensus_keep,
+                                                   c_th=config.c_th)

@@ -132,7 +132,8 @@ def update_consensus(problem: TileProblem, config: FusionConfig) -> float:
         pool_tile = (poses[problem.pool.submap][:, :3, :3].float() @ problem.pool.points[:, :, None])[:, :, 0]
         pool_tile = pool_tile + poses[problem.pool.submap][:, :3, 3].float()
     session = torch.as_tensor(problem.pool_session, device=pool_tile.device)
-    target = consensus_targets(pool_tile, session, config.consensus_radius_m, config.consensus_cover_m)
+    target = consensus_targets(pool_tile, session, config.consensus_radius_m, config.consensus_cover_m,
+                                keep_fraction=config.consensus_keep, c_th=config.c_th)
     problem.pool.conf_target = target
     return float(target.mean())
 

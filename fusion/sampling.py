@@ -199,8 +199,21 @@ def sample_batch(
     return Batch(x, s_hat, nrm, pool.labels[idx], pool.conf_target[idx], xs)
 
 
+def calibrated_confidence(fraction: Tensor, keep_fraction: float, c_th: float) -> Tensor:
+    """Confidence target from a consensus ``fraction``: piecewise linear, 0 → 0, ``keep_fraction`` →
+    ``c_th``, 1 → 1, so extraction (which drops what the field puts below ``c_th``) keeps what at
+    least ``keep_fraction`` of the observing sessions saw. With the fraction itself as the target
+    (``keep_fraction`` = ``c_th``), a surface that 2 of 3 sessions saw (0.67 < 0.7: one had a hole
+    there, or the edge of its field of view) was dropped like a parked car that 1 of 3 saw."""
+    k = min(max(keep_fraction, 1e-6), 1 - 1e-6)
+    low = fraction * (c_th / k)
+    high = c_th + (fraction - k) * ((1 - c_th) / (1 - k))
+    return torch.where(fraction <= k, low, high).clamp(0.0, 1.0)
+
+
 def consensus_targets(
-    pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27
+    pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27,
+    keep_fraction: float | None = None, c_th: float = 0.7,
 ) -> Tensor:
     """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
     that observed the neighbourhood (a surface point within ~``cover_m``) which also observed this
@@ -222,7 +235,8 @@ def consensus_targets(
     for hit_n, hit_c in zip(near_hit, cover_hit, strict=True):
         near += hit_n
         cover += hit_c
-    return (near / cover.clamp(min=1)).float()
+    fraction = (near / cover.clamp(min=1)).float()
+    return fraction if keep_fraction is None else calibrated_confidence(fraction, keep_fraction, c_th)
 
 
 def _within(points: Tensor, session: Tensor, radius_m: float, cells_per_radius: int, max_cells: int) -> list[Tensor]:

@@ -31,7 +31,10 @@ def test_recovers_offset_between_two_sessions() -> None:
     assert len(res.mesh.faces) > 1000
     v = res.mesh.vertices
     assert v[:, 0].min() >= -1e-4 and v[:, 0].max() <= 16 + 1e-4 and v[:, 1].min() >= -1e-4
-    assert np.all(res.mesh.vertex_confidence >= 0.7)
+    # below c_th only next to a border: a face touching one is kept by its seam vertices (fusion.extract)
+    voxel = tiny_config().extract_voxel_m
+    inner = (np.minimum(v[:, 0], 16 - v[:, 0]) > voxel + 1e-4) & (np.minimum(v[:, 1], 16 - v[:, 1]) > voxel + 1e-4)
+    assert inner.sum() > 0.5 * len(v) and np.all(res.mesh.vertex_confidence[inner] >= 0.7)
     # the ground is the dominant class of the fused mesh
     assert np.bincount(res.mesh.vertex_labels).argmax() == 1
     m = res.metrics

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.sampling import consensus_targets, sample_surface_pool
+from fusion.sampling import calibrated_confidence, consensus_targets, sample_surface_pool
 from fusion.types import Pose, SemanticMesh, SubmapInput
 
 
@@ -39,6 +39,27 @@ def test_consensus_separates_transients_from_the_static_world() -> None:
     assert np.abs(car_t - 0.2).max() < 1e-6  # one of the five sessions that covered it
     assert fac.min() == 1.0  # only its observers covered it
     assert 0.2 < target.mean() < 1.0
+
+
+def test_calibrated_confidence_keeps_what_enough_observers_saw() -> None:
+    """c_th 0.7, keep 0.55: 2 of 3 and 3 of 5 observers keep a surface (the raw fraction, 0.67 and 0.6,
+    dropped both), 1 of 2, 1 of 3 and 2 of 5 do not. Monotone, 0 and 1 fixed; keep = c_th is the raw fraction."""
+    f = torch.tensor([0.0, 0.2, 1 / 3, 0.4, 0.5, 0.55, 0.6, 2 / 3, 1.0])
+    t = calibrated_confidence(f, keep_fraction=0.55, c_th=0.7)
+    assert t[0] == 0.0 and t[-1] == 1.0 and abs(float(t[5]) - 0.7) < 1e-6
+    assert (t[1:5] < 0.7).all() and (t[6:] > 0.7).all()
+    assert (t.diff() > 0).all()
+    assert torch.allclose(calibrated_confidence(f, keep_fraction=0.7, c_th=0.7), f)
+    # three sessions; the third has a 3 m hole in its road: the others' road there stays above c_th
+    rng = np.random.default_rng(2)
+    a, b, c = (_plane(rng, (0, 10), (0, 4), 0.0, 2000) for _ in range(3))
+    c = c[np.abs(c[:, 0] - 5) > 1.5]
+    p = torch.tensor(np.concatenate([a, b, c]), dtype=torch.float32)
+    s = torch.tensor(np.repeat([0, 1, 2], [len(a), len(b), len(c)]))
+    raw = consensus_targets(p, s, 0.5, 2.5)[: len(a)]
+    cal = consensus_targets(p, s, 0.5, 2.5, keep_fraction=0.55, c_th=0.7)[: len(a)]
+    in_hole = torch.tensor(np.abs(a[:, 0] - 5) < 0.5)
+    assert raw[in_hole].max() < 0.7 < cal[in_hole].min()
 
 
 def test_consensus_of_a_single_session_is_one_and_empty_input_is_empty() -> None:
