@@ -273,16 +273,31 @@ export class TileMap {
       }
       const aligned = points.filter((p) => p.pose_refined_t).map((p) => p.pose_refined_t);
       if (refined && aligned.length > 1) {
-        this.tracks.add(this.polyline(aligned, new THREE.LineBasicMaterial({ color: sessionColor(session.session_id) })));
+        const color = sessionColor(session.session_id);
+        this.tracks.add(this.polyline(aligned, new THREE.LineBasicMaterial({ color, depthTest: false })));
+        // a dot per submap pose: a one-pixel line alone is lost on a large map
+        const dots = new THREE.PointsMaterial({ color, size: 7, sizeAttenuation: false, depthTest: false });
+        this.tracks.add(this.overlay(new THREE.Points(this.positions(aligned), dots)));
       }
     }
     this.render();
   }
 
-  polyline(points, material) {
+  positions(points) {
     const geometry = new THREE.BufferGeometry();
     geometry.setAttribute("position", new THREE.Float32BufferAttribute(points.flat(), 3));
-    return new THREE.Line(geometry, material);
+    return geometry;
+  }
+
+  /** Drawn after (over) the meshes: trajectories run on the road surface and would be hidden in it. */
+  overlay(object) {
+    object.renderOrder = 10;
+    return object;
+  }
+
+  polyline(points, material) {
+    material.depthTest = false;
+    return this.overlay(new THREE.Line(this.positions(points), material));
   }
 
   // ------------------------------------------------------------------ camera and picking
