@@ -81,9 +81,9 @@ def field_from_state(state: dict[str, torch.Tensor], config: FusionConfig) -> Se
 
 def align_levels(it: int, iterations: int, config: FusionConfig) -> int:
     """Progressive LOD for alignment: ``lod_start_levels`` → ``align_max_levels`` over
-    ``lod_full_fraction`` of the iterations."""
+    ``align_lod_full_fraction`` of the iterations."""
     cap = max(config.lod_start_levels, min(config.align_max_levels, config.num_levels))
-    span = max(1, int(config.lod_full_fraction * iterations))
+    span = max(1, int(config.align_lod_full_fraction * iterations))
     return min(cap, config.lod_start_levels + (cap - config.lod_start_levels + 1) * it // span)
 
 
