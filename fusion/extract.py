@@ -201,11 +201,15 @@ def _pin_entries(pins: Any) -> list[dict[str, Any]]:
 
 
 def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any,
-                      attrs: dict[str, dict[str, np.ndarray]] | None = None) -> int:
+                      attrs: dict[str, dict[str, np.ndarray]] | None = None,
+                      exact: np.ndarray | None = None) -> int:
     """Overwrite our border-plane SDF with neighbours' values where the planes (axis, global k) match;
     returns the number of values pinned. Keys do not matter: the plane's lattice placement does.
     ``attrs``: filled with the neighbours' pinned ``conf`` / ``label`` planes in our plane's shape,
-    keyed by our side (NaN / -1 where they pinned none; borders stored before these existed have none)."""
+    keyed by our side (NaN / -1 where they pinned none; borders stored before these existed have none).
+    ``exact``: the narrow band's mask, set on the pinned points: our own coarse pass may have put a plane
+    outside our band where the neighbour's field had a surface, and marching cubes skips cubes with no
+    exact corner, which left the neighbour's seam vertices without partners here (1.0 m seam, 2x2 bench seed 1)."""
     count = 0
     for e in _pin_entries(pins):
         if abs(float(e["voxel_m"]) - lat.voxel_m) > 1e-9:
@@ -230,6 +234,8 @@ def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any,
             target = vol[side] if axis == 0 else vol[:, side]
             target[ours[0], ours[1]] = sdf[theirs[0], theirs[1]]
             count += target[ours[0], ours[1]].size
+            if exact is not None:
+                (exact[side] if axis == 0 else exact[:, side])[ours[0], ours[1]] = True
             if attrs is not None and "conf" in e:
                 name = next(n for n, (ax, sd) in SIDES.items() if ax == axis and (sd == 0) == (side == 0))
                 plane = attrs.setdefault(name, {"conf": np.full(target.shape, np.nan, np.float32),
@@ -325,7 +331,7 @@ def extract_mesh(
     lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)
     vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step)
     pinned_attrs: dict[str, dict[str, np.ndarray]] = {}
-    pinned = apply_border_pins(vol, lat, border_pins, pinned_attrs) if border_pins else 0
+    pinned = apply_border_pins(vol, lat, border_pins, pinned_attrs, exact=mask) if border_pins else 0
     border = border_planes(vol, lat, attr_fn, pinned_attrs)
     stats: dict[str, Any] = {"lattice_shape": list(lat.shape), "band_points": int(mask.sum()), "pinned": pinned}
     if not ((vol > 0).any() and (vol < 0).any()):

@@ -197,3 +197,15 @@ def test_surface_far_from_every_input_point_is_dropped_and_seams_still_agree() -
     assert np.nanmax(border["x1"]["conf"]) == 0.0  # the seam plane says "no surface" to the neighbour
     b, _, _ = extract_mesh(wavy(), confident, TileSpec(1, 0, 8.0), (-1.0, 3.0), 0.25, border_pins=border)
     assert len(_seam(b, 8.0)) == 0  # the neighbour (confident everywhere itself) drops the seam too
+
+
+def test_pinned_border_outside_our_own_band_still_meets_the_neighbour() -> None:
+    """Tile B's field has no surface near the shared border (its coarse pass puts the plane outside its
+    narrow band), tile A's has one: with A's pins B still places every seam vertex A has."""
+    a, border_a, _ = extract_mesh(wavy(), confident, TileSpec(0, 0, 8.0), (-1.0, 3.0), 0.25)
+    empty = lambda x: np.full(len(x), 5.0)  # noqa: E731
+    b, _, stats = extract_mesh(empty, confident, TileSpec(1, 0, 8.0), (-1.0, 3.0), 0.25, border_pins=border_a)
+    assert stats["pinned"] > 0
+    sa, sb = _seam(a, 8.0), _seam(b, 8.0)
+    assert len(sa) > 10 and len(sb) == len(sa)
+    assert np.abs(np.sort(sa[:, 1]) - np.sort(sb[:, 1])).max() < 1e-6
