@@ -294,6 +294,26 @@ def supported_attrs(attr_fn: AttrFn, support: np.ndarray, radius_m: float) -> At
     return fn
 
 
+def voted_labels(points: np.ndarray, head: np.ndarray, support: np.ndarray, support_labels: np.ndarray,
+                 k: int = 8, radius_m: float = 0.3) -> np.ndarray:
+    """Per query point, the majority label of the ``k`` nearest ``support`` points within ``radius_m``
+    (label 0, unlabelled, does not vote); ``head`` (the semantic head's label) where none votes.
+    Ties go to the head's label when it is among them, else to the lowest id."""
+    tree = cKDTree(np.asarray(support, np.float64))
+    dist, idx = tree.query(np.asarray(points, np.float64), k=k, distance_upper_bound=radius_m)
+    found = np.isfinite(dist)
+    lab = np.where(found, np.asarray(support_labels)[np.minimum(idx, len(support) - 1)], 0)
+    n_cls = int(max(lab.max(initial=0), np.asarray(head).max(initial=0))) + 1
+    votes = np.zeros((len(points), n_cls), np.int32)
+    rows = np.repeat(np.arange(len(points)), k)
+    np.add.at(votes, (rows, lab.ravel()), 1)
+    votes[:, 0] = 0
+    best = votes.max(axis=1)
+    head = np.asarray(head, np.int64)
+    keep_head = votes[np.arange(len(points)), head] == best
+    return np.where((best == 0) | keep_head, head, votes.argmax(axis=1))
+
+
 def _face_labels(vl: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a, b, c = vl[faces[:, 0]], vl[faces[:, 1]], vl[faces[:, 2]]
     return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
@@ -313,6 +333,7 @@ def extract_mesh(
     face_labels: str = "vertices",
     support: np.ndarray | None = None,
     support_m: float = 0.0,
+    support_labels: np.ndarray | None = None,
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
@@ -326,8 +347,10 @@ def extract_mesh(
     """
     if support is not None and support_m > 0:
         attr_fn = supported_attrs(attr_fn, support, support_m)
-    if face_labels not in ("vertices", "centroid"):
-        raise ValueError(f"face_labels must be 'vertices' or 'centroid', got {face_labels!r}")
+    if face_labels not in ("vertices", "centroid", "vote"):
+        raise ValueError(f"face_labels must be 'vertices', 'centroid' or 'vote', got {face_labels!r}")
+    if face_labels == "vote" and (support is None or support_labels is None):
+        raise ValueError("face_labels 'vote' needs support points and their labels")
     lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)
     vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step)
     pinned_attrs: dict[str, dict[str, np.ndarray]] = {}
@@ -364,8 +387,13 @@ def extract_mesh(
     vl = labels.astype(np.uint8)
     if not len(faces):
         fl = np.zeros(0, np.uint8)
-    elif face_labels == "centroid":
-        fl = np.asarray(attr_fn(verts[faces].mean(axis=1))[1]).astype(np.uint8)
+    elif face_labels in ("centroid", "vote"):
+        centroids = verts[faces].mean(axis=1)
+        fl = np.asarray(attr_fn(centroids)[1])
+        if face_labels == "vote":
+            assert support is not None and support_labels is not None
+            fl = voted_labels(centroids, fl, support, support_labels)
+        fl = fl.astype(np.uint8)
     else:
         fl = _face_labels(vl, faces).astype(np.uint8)
     mesh = FusedMesh(verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32), fl)

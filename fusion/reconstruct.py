@@ -240,6 +240,7 @@ def _extract(
         border_pins,
         face_labels=config.face_labels,
         support=_posed_pool(problem).double().cpu().numpy() + problem.origin,
+        support_labels=problem.pool.labels.cpu().numpy(),
         support_m=config.extract_support_m,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )

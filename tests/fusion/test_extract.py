@@ -209,3 +209,23 @@ def test_pinned_border_outside_our_own_band_still_meets_the_neighbour() -> None:
     sa, sb = _seam(a, 8.0), _seam(b, 8.0)
     assert len(sa) > 10 and len(sb) == len(sa)
     assert np.abs(np.sort(sa[:, 1]) - np.sort(sb[:, 1])).max() < 1e-6
+
+
+def test_voted_face_labels_take_the_data_majority_near_each_face() -> None:
+    """``face_labels="vote"``: a 0.3 m sign the semantic head never predicts (it says road everywhere) is
+    labelled from the posed input points near each face; faces with no labelled point near keep the head's."""
+    from fusion.extract import voted_labels
+
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0, 4, 4000), rng.uniform(0, 4, 4000), np.zeros(4000)])
+    labels = np.where(np.abs(pts[:, 0] - 2.0) < 0.15, 8, 1)  # a 0.3 m strip of class 8 in class-1 ground
+    queries = np.array([[2.0, 1.0, 0.0], [0.5, 1.0, 0.0], [2.0, 3.0, 0.05], [9.0, 9.0, 0.0]])
+    head = np.array([1, 1, 1, 4])
+    out = voted_labels(queries, head, pts, labels)
+    assert out.tolist() == [8, 1, 8, 4]  # the strip, the ground, the strip again, no data near: the head's
+    unlabelled = voted_labels(queries[:1], head[:1], pts, np.zeros(len(pts), np.int64))
+    assert unlabelled.tolist() == [1]  # label 0 does not vote
+    mesh, _, _ = extract_mesh(wavy(), confident, TileSpec(0, 0, 8.0), (-1.0, 3.0), 0.25, face_labels="vote",
+                              support=np.column_stack([pts[:, :2] * 2, -wavy()(np.column_stack([pts[:, :2] * 2, pts[:, 2]]))]),
+                              support_m=1.0, support_labels=labels)
+    assert set(np.unique(mesh.face_labels)) <= {1, 8} and (mesh.face_labels == 8).any()
