@@ -9,12 +9,14 @@ import base64
 import binascii
 import json
 import math
-from collections.abc import Callable
-from typing import Annotated, Any
+from collections.abc import Callable, Sequence
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Path
 
 from service.api.problems import ProblemError, validation_error
+
+T = TypeVar("T")
 
 TileRange = tuple[int, int, int, int]  # i0, j0, i1, j1, inclusive
 
@@ -42,6 +44,13 @@ def parse_bbox(bbox: str, tile_size: float) -> TileRange:
 def encode_cursor(*key: Any) -> str:
     """An opaque cursor holding the sort key of the last item of a page."""
     return base64.urlsafe_b64encode(json.dumps(list(key)).encode()).decode().rstrip("=")
+
+
+def keyset_page(rows: Sequence[T], limit: int, key: Callable[[T], tuple[Any, ...]]) -> tuple[list[T], str | None]:
+    """A listing's page from ``rows`` fetched with ``limit + 1``: the first ``limit`` rows and the cursor
+    of the last one (``key`` gives its sort key) when more rows follow, else None."""
+    page = list(rows[:limit])
+    return page, encode_cursor(*key(page[-1])) if len(rows) > limit and page else None
 
 
 def decode_cursor(cursor: str, *types: Callable[[Any], Any]) -> tuple[Any, ...]:

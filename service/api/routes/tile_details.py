@@ -9,7 +9,7 @@ from fastapi import APIRouter, Query, Request
 from sqlalchemy.orm import Session
 
 from service.api.deps import Operator, Reader, SessionDep
-from service.api.params import TileIndex, decode_cursor, encode_cursor, integer, string
+from service.api.params import TileIndex, decode_cursor, integer, keyset_page, string
 from service.api.problems import ProblemError, problem_responses
 from service.api.routes.jobs import job_public
 from service.api.schemas import (
@@ -72,8 +72,7 @@ def list_tile_versions(
     _held(db, i, j)
     before = decode_cursor(cursor, integer)[0] if cursor is not None else None
     rows = reads.tile_versions(db, i=i, j=j, limit=limit + 1, before=before)
-    page = rows[:limit]
-    next_cursor = encode_cursor(page[-1].version) if len(rows) > limit else None
+    page, next_cursor = keyset_page(rows, limit, lambda r: (r.version,))
     return TileVersionPage(items=[_version_public(request, r) for r in page], next_cursor=next_cursor)
 
 
@@ -93,8 +92,7 @@ def list_tile_submaps(
         session_id, seq = decode_cursor(cursor, string, integer)
         after = (session_id, seq)
     rows = reads.tile_submaps(db, i=i, j=j, limit=limit + 1, after=after)
-    page = rows[:limit]
-    next_cursor = encode_cursor(page[-1].session_id, page[-1].seq) if len(rows) > limit else None
+    page, next_cursor = keyset_page(rows, limit, lambda r: (r.session_id, r.seq))
     items = [
         TileSubmapPublic(
             id=r.id, session_id=r.session_id, seq=r.seq, agent_id=r.agent_id, captured_at=r.captured_at,

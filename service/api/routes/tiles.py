@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 from fusion.meshio import filter_confidence, read_fused_ply, write_fused_ply, write_glb
 from service.api.deps import BlobsDep, Operator, Reader, SessionDep, SettingsDep
 from service.api.downloads import IMMUTABLE, matches, read_blob
-from service.api.params import TileIndex, decode_cursor, encode_cursor, integer, parse_bbox
+from service.api.params import TileIndex, decode_cursor, integer, keyset_page, parse_bbox
 from service.api.problems import ProblemError, problem_responses
 from service.api.schemas import FuseAccepted, TileLinks, TilePage, TilePublic
 from service.schedule import request_fusion
@@ -126,9 +126,8 @@ def list_tiles(
         ci, cj = decode_cursor(cursor, integer, integer)
         query = query.where(or_(Tile.i > ci, and_(Tile.i == ci, Tile.j > cj)))
     rows = db.execute(query).all()
-    page, more = rows[:limit], len(rows) > limit
+    page, next_cursor = keyset_page(rows, limit, lambda r: (r.i, r.j))
     links = _Links(request)
-    next_cursor = encode_cursor(page[-1].i, page[-1].j) if more and page else None
     return _json(TilePage(items=[_public(links, r) for r in page], next_cursor=next_cursor))  # type: ignore[return-value]
 
 
