@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from fusion.coarse import coarse_register
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
 from fusion.field import SemanticSDFField
@@ -125,7 +126,7 @@ def align_region(
         raise FusionError("align_region: no free submap to align", code="empty_tile")
     size = tiles[0].size_m
     origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
-    poses, gps = _region_poses(subs, origin, config, dev)
+    poses, gps, coarse = _region_poses(subs, origin, config, dev)
     built, skipped = _build_tiles(subs, tiles, config, dev, poses, origin, frozen)
     incremental = any(t.frozen for t in built)
     per_tile = config.align_incremental_iterations_per_tile if incremental else config.align_iterations_per_tile
@@ -150,25 +151,43 @@ def align_region(
         "tile_share": {f"{t.key[0]}_{t.key[1]}": round(t.share, 4) for t in built},
         "tile_content": {f"{t.key[0]}_{t.key[1]}": round(c, 4) for t, c in zip(built, contents, strict=True)},
         "skipped": skipped,
+        "coarse": coarse,
     }
     return AlignResult(map_poses(poses, origin, subs), fields, metrics)
 
 
+def start_poses(submaps: list[SubmapInput], config: FusionConfig, device: str | None = None
+                ) -> tuple[dict[str, Pose], dict[str, dict[str, float]]]:
+    """Where the alignment starts, without training: each session's odometry chain on its GPS poses
+    (``odom_init``), moved onto the other sessions (``coarse_register``). Map-frame pose per free
+    submap, and the coarse registration's per-session figures (the bench's ``init``/``coarse`` rows)."""
+    subs = sorted(submaps, key=lambda s: s.id)
+    cents = np.stack([s.pose_init.apply(s.mesh.vertices.mean(0)[None])[0] for s in subs])
+    origin = np.array([*np.floor(cents[:, :2].min(0)), 0.0])
+    poses, _, coarse = _region_poses(subs, origin, config, resolve_device(device or config.device))
+    return map_poses(poses, origin, subs), coarse
+
+
 def _region_poses(
     subs: list[SubmapInput], origin: np.ndarray, config: FusionConfig, dev: torch.device
-) -> tuple[PoseSet, torch.Tensor]:
+) -> tuple[PoseSet, torch.Tensor, dict[str, dict[str, float]]]:
     """The region's poses (region frame: map frame shifted by ``-origin``): each session's odometry
-    chain placed on its GPS poses (fixed submaps dominate); and the GPS anchors of the prior."""
+    chain placed on its GPS poses (fixed submaps dominate), then moved rigidly onto the other sessions
+    (``fusion.coarse``); the GPS anchors of the prior; the coarse registration's per-session figures."""
     to_region = np.eye(4)
     to_region[:3, 3] = -origin
     init = [to_region @ s.pose_init.matrix() for s in subs]
     gps = torch.tensor(np.stack([to_region @ (s.pose_gps or s.pose_init).matrix() for s in subs]), device=dev)
     cents = [s.mesh.vertices.mean(0) for s in subs]
     start = odometry_consistent_start(subs, init, cents) if config.odom_init else init
+    coarse: dict[str, dict[str, float]] = {}
+    if config.coarse_register:
+        registered = coarse_register(subs, start, config, dev)
+        start, coarse = registered.poses, registered.metrics
     centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(start, cents, strict=True)])
     poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids),
                     torch.tensor([s.free for s in subs])).to(dev)
-    return poses, gps
+    return poses, gps, coarse
 
 
 def _build_tiles(

@@ -73,6 +73,23 @@ class FusionConfig:
     lr_decay_final: float = 0.1  # exponential decay: lr(end) = lr · lr_decay_final
     iterations: int = 300  # a full tile's steps; fusion.schedule scales them with the tile's content
     odom_init: bool = True  # start from each session's odometry chain rigidly fitted to its GPS poses
+    # coarse registration (fusion.coarse): each session's odometry chain, as one rigid body, searched over
+    # yaw × 3-D shift (±coarse_range_sigmas GPS σ) against the other sessions' surfaces before the field
+    # alignment: widens the pose basin beyond the coarsest field level's ~2 m
+    coarse_register: bool = True
+    coarse_voxel_m: float = 1.0  # first stage's voxel (second: half of it)
+    coarse_points_per_m2: float = 8.0  # reference surface samples per m² (capped per submap below)
+    coarse_max_points: int = 30_000
+    coarse_match_points: int = 2000  # moving samples scored per candidate
+    coarse_range_sigmas: float = 3.0
+    coarse_max_shift_m: float = 12.0
+    coarse_max_yaw_deg: float = 15.0
+    # of the candidates within max(coarse_tie_min, coarse_tie × the best's gain over the start) of the best
+    # score, the one moving the session least wins: along a straight road the GPS start keeps the direction
+    # the data leave open
+    coarse_tie: float = 0.15
+    coarse_tie_min: float = 0.01
+    coarse_min_gain: float = 0.02  # keep a correction only if it raises the score this much over the start
     pose_warmup: int = 10  # iterations with frozen poses so the field first takes a rough shape
     surface_samples: int = 4096
     space_samples: int = 4096

@@ -91,6 +91,16 @@ def _pose_figures(ctx: BenchContext, poses: dict[str, Pose]) -> dict[str, Any]:
     return scoring.pose_figures(ctx.submaps, poses, ctx.truth.poses)
 
 
+def _start(ctx: BenchContext, coarse: bool) -> dict[str, Any]:
+    """Pose figures where the alignment starts (no field): ``init`` odometry chains placed on GPS,
+    ``coarse`` then each session registered onto the others (``fusion.coarse``; seconds)."""
+    from fusion.align import start_poses
+
+    t0 = time.perf_counter()
+    poses, sessions = start_poses([s.input for s in ctx.submaps], ctx.config.with_(coarse_register=coarse))
+    return _pose_figures(ctx, poses) | {"wall_s": time.perf_counter() - t0, "coarse_sessions": sessions}
+
+
 def evaluate_region(ctx: BenchContext, results: dict[tuple[int, int], FusionResult], poses: dict[str, Pose] | None,
                     ) -> dict[str, Any]:
     """Whole-map (gauge-aligned and absolute) and per-tile figures; ``poses`` None: already in the true
@@ -190,7 +200,7 @@ def _concat(ctx: BenchContext, at_gps: bool) -> dict[str, Any]:
     return scoring.score_aligned_and_absolute(ctx.points, mesh, gauge)
 
 
-ROWS = ("gps", "concat", "concat_gps", "fused", "oracle", "icp", "gicp")
+ROWS = ("gps", "init", "coarse", "concat", "concat_gps", "fused", "oracle", "icp", "gicp")
 
 
 def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5),
@@ -223,6 +233,8 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
     for name in rows:
         if name == "gps":
             report_rows[name] = _pose_figures(ctx, {s.input.id: s.pose_gps for s in ctx.submaps})
+        elif name in ("init", "coarse"):  # where the alignment starts: odometry chains on GPS, + coarse registration
+            report_rows[name] = _start(ctx, coarse=name == "coarse")
         elif name in ("concat", "concat_gps"):
             report_rows[name] = _concat(ctx, at_gps=name == "concat_gps")
         elif name == "fused":
