@@ -96,7 +96,7 @@ class _Occupancy:
         grid = torch.zeros(_NUM_GROUPS * self.cells, dtype=torch.float32, device=points.device)
         idx = ((points - lo) / voxel).floor().long()
         keep = torch.all((idx >= 0) & (idx < dims), dim=1) & (group >= 0)
-        grid.index_add_(0, idx[keep] @ self.strides + group[keep] * self.cells,
+        grid.index_add_(0, self.flat(idx[keep]) + group[keep] * self.cells,
                         torch.ones(int(keep.sum()), dtype=torch.float32, device=points.device))
         grid = grid.view(_NUM_GROUPS, nx, ny, nz)
         for axis in (1, 2, 3):  # separable [1 2 1] / 4 blur: a point counts half in the neighbouring voxels
@@ -110,10 +110,14 @@ class _Occupancy:
         # several reference sessions) do not outweigh sparse structure
         self.values = (1.0 - torch.exp(-2.0 * grid.reshape(-1) / (density * voxel**2))).half()
 
+    def flat(self, idx: torch.Tensor) -> torch.Tensor:
+        """Flat offset of integer voxel coordinates (..., 3) (no integer matmul: CUDA has none)."""
+        return (idx * self.strides).sum(-1)
+
     def index(self, points: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
         """Flat voxel index of ``points`` (n, 3) in their groups' grids, clamped into the grid."""
         idx = ((points - self.lo) / self.voxel).floor().long()
-        return torch.minimum(torch.clamp(idx, min=0), self.dims - 1) @ self.strides + group.clamp(min=0) * self.cells
+        return self.flat(torch.minimum(torch.clamp(idx, min=0), self.dims - 1)) + group.clamp(min=0) * self.cells
 
     def taps(self, points: torch.Tensor, group: torch.Tensor, smooth: bool) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """(flat index, weight) pairs whose weighted sum is the occupancy of each of ``points``' (n, 3)
@@ -130,7 +134,7 @@ class _Occupancy:
         for corner in range(8):
             bits = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1], device=points.device)
             idx = torch.minimum(torch.clamp(base + bits, min=0), self.dims - 1)
-            out.append((idx @ self.strides + base_group, torch.where(bits.bool(), t, 1 - t).prod(1)))
+            out.append((self.flat(idx) + base_group, torch.where(bits.bool(), t, 1 - t).prod(1)))
         return out
 
 
@@ -189,7 +193,7 @@ def _search(
     r_xy, r_z = torch.arange(-n_xy, n_xy + 1, device=dev), torch.arange(-n_z, n_z + 1, device=dev)
     gx, gy, gz = torch.meshgrid(r_xy, r_xy, r_z, indexing="ij")
     steps = torch.stack([gx.reshape(-1), gy.reshape(-1), gz.reshape(-1)], 1)
-    offsets = steps @ occ.strides
+    offsets = occ.flat(steps)
     wn = (w / w.sum()).float()
     score = torch.empty(len(yaws), len(steps), dtype=torch.float64, device=dev)
     per = max(1, _CHUNK // max(1, len(moving)))
