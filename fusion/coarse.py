@@ -25,7 +25,8 @@ voxels over ±``coarse_range_sigmas`` GPS σ, then half-size voxels (trilinear) 
   direction the data leave open.
 - Order: the first round grows the map from an anchor (the sessions holding fixed submaps, else the
   largest session), adding the session that overlaps the registered ones most; the second round
-  re-registers every free session against all the others (fine stage only).
+  re-registers the anchor and every session the first round moved against all the others (fine
+  stage only).
 - Gauge: with no fixed submap, the mean correction (yaw and centroid shift, weighted by submap count)
   is taken back out, so the map keeps the GPS fixes' average placement, as the GPS prior wants.
 
@@ -306,13 +307,19 @@ def coarse_register(
             stats[i] = _register(i, clouds, ref, config, dev, coarse=True)
         registered.append(i)
         pending.remove(i)
-    for i, s in enumerate(sessions):  # round 2: every free session against all the others, fine only
-        if s.free:
+    anchor = None if fixed else registered[0]
+    for i, s in enumerate(sessions):  # round 2: the anchor and the sessions round 1 moved, against all others
+        # a session whose wide search found nothing significant has no evidence a local search could add
+        # to (a narrower search has a lower chance bar: exact bench seed 2 moved a barely overlapping session
+        # 1.5 m the wrong way here)
+        if s.free and (i == anchor or stats.get(i, {}).get("kept")):
             st = _register(i, clouds, clouds.union([j for j in range(len(sessions)) if j != i]), config, dev,
                            coarse=False)
             stats[i] = {f"first_{k}": v for k, v in stats.get(i, {}).items()} | st
     if not fixed:
-        _remove_mean(clouds)
+        moved = [i for i in range(len(sessions)) if i == anchor or stats.get(i, {}).get("first_kept")]
+        if len(moved) > 1:
+            _remove_mean(clouds, moved)
     metrics: dict[str, dict[str, float]] = {}
     for i, s in enumerate(sessions):
         if not s.free:
@@ -393,16 +400,20 @@ def _register(i: int, clouds: _Clouds, ref: tuple[torch.Tensor, torch.Tensor], c
     return out
 
 
-def _remove_mean(clouds: _Clouds) -> None:
-    """Take the mean correction (yaw, centroid shift; sessions weighted by their submap count) out of
-    every session's: the map keeps the GPS fixes' average placement."""
-    w = np.array([len(s.members) for s in clouds.sessions], dtype=float)
-    yaws = np.array([math.atan2(float(c[1, 0]), float(c[0, 0])) for c in clouds.corr])
-    before = np.stack([p.mean(0).numpy() for p in clouds.start])
-    after = np.stack([(c[:3, :3] @ torch.from_numpy(b) + c[:3, 3]).numpy() for c, b in zip(clouds.corr, before, strict=True)])
+def _remove_mean(clouds: _Clouds, members: list[int]) -> None:
+    """Take the mean correction (yaw, centroid shift; sessions weighted by their submap count) of the
+    sessions ``members`` (the anchor and those registered onto it) out of theirs: that group keeps its GPS
+    fixes' average placement. Sessions outside it were not moved and keep their start (the gauge of
+    the group does not concern them)."""
+    w = np.array([len(clouds.sessions[i].members) for i in members], dtype=float)
+    corr = [clouds.corr[i] for i in members]
+    yaws = np.array([math.atan2(float(c[1, 0]), float(c[0, 0])) for c in corr])
+    before = np.stack([clouds.start[i].mean(0).numpy() for i in members])
+    after = np.stack([(c[:3, :3] @ torch.from_numpy(b) + c[:3, 3]).numpy() for c, b in zip(corr, before, strict=True)])
     rot = _yaw(torch.tensor([-float(np.average(yaws, weights=w))], dtype=torch.float64))[0].numpy()
     pivot = np.average(after, axis=0, weights=w)
     h = np.eye(4)
     h[:3, :3] = rot
     h[:3, 3] = np.average(before, axis=0, weights=w) - rot @ pivot
-    clouds.corr = [torch.tensor(h) @ c for c in clouds.corr]
+    for i in members:
+        clouds.corr[i] = torch.tensor(h) @ clouds.corr[i]
