@@ -167,21 +167,22 @@ def _peak(values: torch.Tensor, at: tuple[int, ...]) -> list[float]:
 
 
 def _search(
-    ref: tuple[torch.Tensor, torch.Tensor], moving: tuple[torch.Tensor, torch.Tensor], w: torch.Tensor,
+    target: tuple[torch.Tensor, torch.Tensor], source: tuple[torch.Tensor, torch.Tensor], w: torch.Tensor,
     yaws: torch.Tensor, voxel: float, n_xy: int, n_z: int, tie: tuple[float, float], density: float,
     smooth: bool,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """The yaw (about the moving points' centroid) and shift of ``moving`` onto ``ref``'s occupancy.
+    """The yaw (about the source points' centroid) and shift of ``source`` onto ``target``'s occupancy.
 
     Candidates: ``yaws`` × shifts of ±``n_xy`` (x, y) and ±``n_z`` (z) whole voxels, scored by the
     weighted mean occupancy of each sample's group. Of the candidates within ``max(tie[0], tie[1] × gain)``
     of the best score (gain: best − start), the one that moves the samples least is chosen: where the
     data leave a ridge (a straight road), the start keeps the direction they do not decide.
-    ``ref`` and ``moving``: points (n, 3) and their match groups (n,).
+    ``target`` and ``source``: points (n, 3) and their match groups (n,).
     Returns the correction (4, 4) float64 (sub-voxel and sub-step by parabolic interpolation) and the
     scores ``score`` (the chosen), ``best``, ``start`` (no correction) and ``noise`` (a gain over the
     start that chance alone reaches among this many candidates)."""
-    (ref, ref_group), (moving, group) = ref, moving
+    ref, ref_group = target
+    moving, group = source
     dev = moving.device
     centre = moving.mean(0)
     rots = _yaw(yaws).to(moving.dtype)
@@ -202,7 +203,10 @@ def _search(
         taps = occ.taps(rotated[a], group, smooth)
         for s0 in range(0, len(steps), per):
             off = offsets[s0:s0 + per, None]
-            score[a, s0:s0 + per] = sum(occ.values[idx[None] + off].float() @ (wn * tw) for idx, tw in taps).double()
+            chunk = torch.zeros(len(off), dtype=torch.float32, device=dev)
+            for idx, tw in taps:
+                chunk += occ.values[idx[None] + off].float() @ (wn * tw)
+            score[a, s0:s0 + per] = chunk.double()
     start = float(score[int(torch.argmin(yaws.abs())), (steps.abs().sum(1) == 0).nonzero()[0, 0]])
     best = float(score.max())
     # displacement of the samples (RMS) by each candidate; the least-moving near-best one wins
