@@ -206,7 +206,8 @@ def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any,
     """Overwrite our border-plane SDF with neighbours' values where the planes (axis, global k) match;
     returns the number of values pinned. Keys do not matter: the plane's lattice placement does.
     ``attrs``: filled with the neighbours' pinned ``conf`` / ``label`` planes in our plane's shape,
-    keyed by our side (NaN / -1 where they pinned none; borders stored before these existed have none).
+    keyed by our side (NaN / -1 where the neighbour's plane holds no attribute, 0 / 0 above or below its
+    plane; borders stored before these existed have none).
     ``exact``: the narrow band's mask, set on the pinned points: our own coarse pass may have put a plane
     outside our band where the neighbour's field had a surface, and marching cubes skips cubes with no
     exact corner, which left the neighbour's seam vertices without partners here (1.0 m seam, 2x2 bench seed 1)."""
@@ -240,9 +241,24 @@ def apply_border_pins(vol: np.ndarray, lat: Lattice, pins: Any,
                 name = next(n for n, (ax, sd) in SIDES.items() if ax == axis and (sd == 0) == (side == 0))
                 plane = attrs.setdefault(name, {"conf": np.full(target.shape, np.nan, np.float32),
                                                 "label": np.full(target.shape, -1, np.int16)})
+                # above or below the neighbour's plane (its lattice spans other heights) the neighbour
+                # has no surface: confidence 0 there, so we keep none on the seam either
+                plane["conf"][ours[0], :] = 0.0
+                plane["label"][ours[0], :] = 0
                 plane["conf"][ours[0], ours[1]] = np.asarray(e["conf"])[theirs[0], theirs[1]]
                 plane["label"][ours[0], ours[1]] = np.asarray(e["label"])[theirs[0], theirs[1]]
     return count
+
+
+def _with_pinned_heights(z_range: tuple[float, float], pins: Any, voxel_m: float) -> tuple[float, float]:
+    """``z_range`` grown to the heights of the neighbours' border planes: a neighbour's surface on the
+    shared plane then always has its partner here (each tile's range comes from its own data)."""
+    lo, hi = z_range
+    for e in _pin_entries(pins) if pins else []:
+        if abs(float(e["voxel_m"]) - voxel_m) <= 1e-9:
+            k_z, n_z = int(e["k0"][1]), np.asarray(e["sdf"]).shape[1]
+            lo, hi = min(lo, k_z * voxel_m), max(hi, (k_z + n_z - 1) * voxel_m)
+    return lo, hi
 
 
 def _border_attrs(verts_idx: np.ndarray, lat: Lattice, border: dict[str, dict[str, Any]],
@@ -351,7 +367,7 @@ def extract_mesh(
         raise ValueError(f"face_labels must be 'vertices', 'centroid' or 'vote', got {face_labels!r}")
     if face_labels == "vote" and (support is None or support_labels is None):
         raise ValueError("face_labels 'vote' needs support points and their labels")
-    lat = tile_lattice(tile, z_range[0], z_range[1], voxel_m)
+    lat = tile_lattice(tile, *_with_pinned_heights(z_range, border_pins, voxel_m), voxel_m)
     vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step)
     pinned_attrs: dict[str, dict[str, np.ndarray]] = {}
     pinned = apply_border_pins(vol, lat, border_pins, pinned_attrs, exact=mask) if border_pins else 0

@@ -211,6 +211,26 @@ def test_pinned_border_outside_our_own_band_still_meets_the_neighbour() -> None:
     assert np.abs(np.sort(sa[:, 1]) - np.sort(sb[:, 1])).max() < 1e-6
 
 
+def test_tiles_of_different_heights_meet_on_their_shared_plane() -> None:
+    """Each tile's height range comes from its own data. A wall crossing the border x = 8 m, tile A spanning
+    z ∈ [-1, 2] and tile B z ∈ [-1, 5] (or the other way round): whichever is reconstructed second meets the
+    first on the whole shared plane (B fused second drops the seam above A's top, A fused second grows its
+    range to B's plane), and away from the border B keeps its full wall."""
+
+    def wall(x: np.ndarray) -> np.ndarray:  # a 0.4 m wall across y = 4 m standing on the ground z = 0.3 m
+        return np.minimum(np.abs(x[:, 1] - 4.0) - 0.2, x[:, 2] - 0.3)
+
+    tile_a, tile_b = TileSpec(0, 0, 8.0), TileSpec(1, 0, 8.0)
+    for first, second in (((tile_a, (-1.0, 2.0)), (tile_b, (-1.0, 5.0))), ((tile_b, (-1.0, 5.0)), (tile_a, (-1.0, 2.0)))):
+        m1, border, _ = extract_mesh(wall, confident, first[0], first[1], 0.25)
+        m2, _, _ = extract_mesh(wall, confident, second[0], second[1], 0.25, border_pins=border)
+        s1, s2 = _seam(m1, 8.0), _seam(m2, 8.0)
+        assert len(s1) > 10 and s1.shape == s2.shape
+        assert np.abs(np.sort(s1, axis=0) - np.sort(s2, axis=0)).max() < 1e-5
+        b = m1 if first[0] == tile_b else m2
+        assert b.vertices[b.vertices[:, 0] > 9.0, 2].max() > 4.9  # B's wall stands to its top inside B
+
+
 def test_voted_face_labels_take_the_data_majority_near_each_face() -> None:
     """``face_labels="vote"``: a 0.3 m sign the semantic head never predicts (it says road everywhere) is
     labelled from the posed input points near each face; faces with no labelled point near keep the head's."""
