@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from fusion.config import FusionConfig
-from fusion.sampling import face_geometry
+from fusion.sampling import face_geometry, on_triangles, uniform_barycentric
 from fusion.types import SubmapInput
 
 _CHUNK = 1 << 23  # grid lookups per batch
@@ -248,11 +248,7 @@ def _sessions(subs: list[SubmapInput], config: FusionConfig, rng: np.random.Gene
                 continue
             n = int(min(config.coarse_max_points, max(50, total * config.coarse_points_per_m2)))
             face = rng.choice(len(area), size=n, p=area / total)
-            u, v = rng.random((2, n))
-            flip = u + v > 1
-            u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-            tri = mesh.vertices[mesh.faces[face]]
-            local.append(tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0]))
+            local.append(on_triangles(mesh.vertices[mesh.faces[face]], *uniform_barycentric(n, rng)))
             owner.append(np.full(n, m))
             group.append(label_groups(np.asarray(mesh.face_labels)[face]))
             # local frames are z-up (vehicle): ground has |n_z| ~ 1 and fixes only height and tilt

@@ -57,6 +57,19 @@ def face_geometry(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     return 0.5 * dbl, cross / np.maximum(dbl, 1e-12)[:, None]
 
 
+def uniform_barycentric(count: int, rng: np.random.Generator, dtype: type = np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """Barycentric weights (u, v), each (count, 1), of points uniform on a triangle: draws in the unit
+    square folded into the lower half."""
+    u, v = rng.random(count, dtype), rng.random(count, dtype)
+    flip = u + v > 1
+    return np.where(flip, 1 - u, u)[:, None], np.where(flip, 1 - v, v)[:, None]
+
+
+def on_triangles(tri: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The points ``(1 - u - v)·a + u·b + v·c`` of triangles ``tri`` (n, 3, 3)."""
+    return tri[:, 0] + u * (tri[:, 1] - tri[:, 0]) + v * (tri[:, 2] - tri[:, 0])
+
+
 def sample_surface_pool(
     submaps: list[SubmapInput],
     init_tile: list[np.ndarray],
@@ -103,15 +116,11 @@ def sample_surface_pool(
         # gathers below walk memory in order (~5× faster than rng.choice(p=...) over millions of faces)
         q = np.sort(rng.random(count)) * cdf[-1]
         f = np.minimum(np.searchsorted(cdf, q, side="right"), area.size - 1)
-        u, v = rng.random(count, np.float32), rng.random(count, np.float32)
-        flip = u + v > 1
-        u, v = np.where(flip, 1 - u, u)[:, None], np.where(flip, 1 - v, v)[:, None]
-        t = tri_tile[f]
-        pt = t[:, 0] + u * (t[:, 1] - t[:, 0]) + v * (t[:, 2] - t[:, 0])
+        u, v = uniform_barycentric(count, rng, np.float32)
+        pt = on_triangles(tri_tile[f], u, v)
         inside = np.flatnonzero(np.all((pt >= box_lo) & (pt <= box_hi), axis=1))
         f, u, v = f[inside], u[inside], v[inside]
-        t = tri_all[f]
-        p = t[:, 0] + u * (t[:, 1] - t[:, 0]) + v * (t[:, 2] - t[:, 0])
+        p = on_triangles(tri_all[f], u, v)
         return p.astype(np.float64), nrm_all[f], lab_all[f], own_all[f]
 
     pilot = draw(20_000)
