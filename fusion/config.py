@@ -65,6 +65,9 @@ class FusionConfig:
     lambda_odom: float = 0.01  # odometry residuals are in σ units; 1 made chains too stiff to align (bench)
     lambda_gps: float = 1e-2
     sigma_s: float = 0.05  # metres, std of the surface-sample offset along the normal
+    # SDF data term: squared up to this residual (metres), linear beyond (Huber; fusion.losses.robust_square);
+    # 0: squared everywhere (the paper)
+    sdf_robust_m: float = 0.0
     # optimiser
     lr_field: float = 1e-2
     lr_pose_trans: float = 0.1  # metres per step (3e-2 until 2026-12: camera 2x2 bench, seeds 0-2, below)

@@ -47,6 +47,17 @@ def gps_prior_loss(poses: Tensor, init: Tensor, inv_sigma_t: Tensor, inv_sigma_r
     return ((dt * inv_sigma_t[:, None]) ** 2 + (dr * inv_sigma_r[:, None]) ** 2).sum(-1).mean()
 
 
+def robust_square(r: Tensor, delta: float) -> Tensor:
+    """``r²`` up to ``|r| = delta``, then linear (Huber, scaled to match ``r²`` below ``delta``): a sample
+    the field contradicts by more than ``delta`` (another session's depth error, a parked car gone)
+    pulls the field and the poses with a bounded force ``2·delta`` instead of one growing with its
+    residual. ``delta`` 0: plain ``r²``."""
+    if delta <= 0:
+        return r**2
+    a = r.abs()
+    return torch.where(a <= delta, r**2, 2 * delta * a - delta**2)
+
+
 def field_losses(
     field: SemanticSDFField, batch: Batch, config: FusionConfig, gen: torch.Generator
 ) -> tuple[dict[str, Tensor], int]:
@@ -58,7 +69,7 @@ def field_losses(
     s, c_logit, logits = field(x)
     assert logits is not None
     terms: dict[str, Tensor] = {}
-    terms["sdf"] = ((s[:n_surf] - batch.surf_sdf) ** 2).mean()
+    terms["sdf"] = robust_square(s[:n_surf] - batch.surf_sdf, config.sdf_robust_m).mean()
 
     labelled = batch.surf_label != UNLABELED
     if bool(labelled.any()):

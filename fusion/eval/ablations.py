@@ -242,7 +242,9 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--baseline", action="store_true", help="compare ICP/GICP/GPS + Poisson with the fusion"
     )
-    parser.add_argument("--ablation", metavar="NAME", help=f"ablation study: {', '.join(STUDIES)} or all")
+    parser.add_argument("--ablation", metavar="NAME",
+                        help=f"ablation study: {', '.join(STUDIES)} or all (one tile); components (multi-tile: "
+                             "one fused row per method component switched, fusion.eval.bench_region.COMPONENTS)")
     parser.add_argument("--plots", metavar="DIR", type=Path, help="write one PNG per study here")
     parser.add_argument("--baseline-points", type=int, default=1_000_000, help="Poisson samples (paper: 1e6)")
     parser.add_argument(

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fusion.config import FusionConfig
 from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.offline import fuse_tiles
@@ -118,16 +119,18 @@ def evaluate_region(ctx: BenchContext, results: dict[tuple[int, int], FusionResu
     return out
 
 
-def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose] | None) -> dict[str, Any]:
+def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose] | None,
+          config: FusionConfig | None = None) -> dict[str, Any]:
+    cfg = config or ctx.config
     t0 = time.perf_counter()
     refined: dict[str, Pose] = {}
     align: list[dict[str, Any]] = []
     skipped: dict[str, str] = {}
-    results = fuse_tiles(ctx.submaps, keys, ctx.config, ctx.tile_size, refined=refined, fixed_poses=fixed,
+    results = fuse_tiles(ctx.submaps, keys, cfg, ctx.tile_size, refined=refined, fixed_poses=fixed,
                          skipped=skipped, align_metrics=align)
     wall = time.perf_counter() - t0
     figs = evaluate_region(ctx, results, None if fixed is not None else refined)
-    figs |= seam_gaps(results, ctx.tile_size, ctx.config.extract_voxel_m)
+    figs |= seam_gaps(results, ctx.tile_size, cfg.extract_voxel_m)
     align_s = sum(a["duration_s"] for a in align)
     recon = [r.metrics["duration_s"] for r in results.values()]
     figs |= {"wall_s": wall, "align_s": align_s, "align_s_per_tile": align_s / max(1, len(keys)),
@@ -160,14 +163,17 @@ def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, confi
 def format_region_table(report: dict[str, Any]) -> str:
     cols = [("geo P", "geo_p", ".3f"), ("geo R", "geo_r", ".3f"), ("geo F", "geo_f", ".3f"), ("sem F", "sem_f", ".3f"),
             ("abs geo F", "abs_geo_f", ".3f"), ("trans m", "pose_trans_m", ".3f"), ("rot deg", "pose_rot_deg", ".3f"),
-            ("seam max", "seam_max_m", ".3f"), ("align s", "align_s", ".0f"), ("recon s/t", "recon_s_per_tile", ".0f"),
-            ("wall s", "wall_s", ".0f")]
-    lines = [f"{'row':<8}" + "".join(f"{c[0]:>11}" for c in cols)]
+            ("transient", "transient_survival", ".1%"), ("seam max", "seam_max_m", ".3f"), ("align s", "align_s", ".0f"),
+            ("recon s/t", "recon_s_per_tile", ".0f"), ("wall s", "wall_s", ".0f")]
+    width = max(8, *(len(n) + 1 for n in report["rows"]))
+    lines = [f"{'row':<{width}}" + "".join(f"{c[0]:>11}" for c in cols)]
     for name, row in report["rows"].items():
-        lines.append(f"{name:<8}" + "".join(f"{fmt(row.get(k), s):>11}" for _, k, s in cols))
+        lines.append(f"{name:<{width}}" + "".join(f"{fmt(row.get(k), s):>11}" for _, k, s in cols))
     lines.append("whole core: geo/sem gauge-aligned (rigid Umeyama fit of all submaps' fused poses to the truth); "
                  "pose RMSE after rigid alignment; seam max: widest distance between two tiles' border vertices")
     for name, row in report["rows"].items():
+        if row.get("per_class_f"):
+            lines.append(f"  {name} per class F: " + "  ".join(f"{k} {fmt(v, '.2f')}" for k, v in row["per_class_f"].items()))
         if "per_tile" not in row:
             continue
         lines.append(f"  {name} per tile (geo F / sem F / recon s):  " + "  ".join(
@@ -202,22 +208,35 @@ def _concat(ctx: BenchContext, at_gps: bool) -> dict[str, Any]:
 
 ROWS = ("gps", "init", "coarse", "concat", "concat_gps", "fused", "oracle", "icp", "gicp")
 
+# ``fleetmap bench --ablation components`` (multi-tile): one fused row per method component, switched
+# against the default config (on → off, or off → on for a candidate not yet the default), on the same data
+COMPONENTS: tuple[str, ...] = (
+    "coarse_register=false",  # coarse session registration (fusion.coarse)
+    "odom_init=false",  # start from each session's odometry chain fitted to its GPS fixes
+    "sdf_robust_m=0.1",  # robust (Huber) SDF data term (fusion.losses.robust_square)
+    "consensus=false",  # cross-session consensus confidence targets
+    "extract_support_m=0",  # no surface farther than 1 m from every posed input point
+    "face_labels=vote",  # face labels voted by the posed input points near each face
+)
+
 
 def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5),
                      seed: int = 0, json_path: str | Path | None = None, rows: list[str] | None = None,
                      config: Any = None, out: Callable[[str], None] = print, tile_size: float | None = None,
                      vertex_noise_m: float | None = None, tiles: int = 3, sensor: str = "camera",
-                     baseline_config: Any = None) -> dict[str, Any]:
+                     baseline_config: Any = None, variants: list[str] | None = None) -> dict[str, Any]:
     """Simulate ``sessions`` sessions (``sensor`` camera or exact) through a ``tiles``×``tiles`` core of
     ``tile_size`` m tiles, fuse the core tiles (rows: gps, fused; oracle on request: it doubles the time;
     concat / concat_gps: the uploads concatenated, no fusion; icp / gicp: the classical baseline with
-    ``baseline_config``), print the table, return (and optionally write to ``json_path``) every figure."""
-    from fusion.config import FusionConfig
+    ``baseline_config``), print the table, return (and optionally write to ``json_path``) every figure.
+    ``variants``: more fused rows, each named by its ``KEY=VALUE[,KEY=VALUE]`` overrides of the config
+    (``COMPONENTS``: the ablation table), on the same simulated data."""
     from fusion.eval.synth.fleet import FleetParams
     from fusion.eval.synth.simulate import simulate
     from fusion.eval.synth.world import WorldParams
 
     cfg = config or FusionConfig.preset(preset)
+    variant_configs = {v: cfg.with_overrides(v.split(",")) for v in variants or []}  # bad keys fail before simulating
     size = float(tile_size or (128.0 if preset == "paper" else 64.0))
     rows = rows or ["gps", "fused"]
     with tempfile.TemporaryDirectory(prefix="fleetmap-bench-region-") as tmp:
@@ -245,6 +264,8 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
             report_rows[name] = _baseline(ctx, keys, name, baseline_config)
         else:
             raise ValueError(f"unknown region bench row {name!r} (known: {', '.join(ROWS)})")
+    for name, variant in variant_configs.items():
+        report_rows[name] = _fuse(ctx, keys, None, variant)
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "sensor": sensor,
               "tiles": tiles,
               "tile_size_m": size, "simulate_s": sim_s, "submaps": len(ctx.submaps), "rows": report_rows,

@@ -100,6 +100,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         return run_throughput(args)
     region = args.tiles > 1
+    components = region and args.ablation == "components"  # the multi-tile ablation: variant rows below
+    if components:
+        from fusion.eval.bench_region import COMPONENTS
+
+        args.variant = [*COMPONENTS, *args.variant]
+        args.ablation = None
+    if args.variant and not region:
+        return _fail("--variant and --ablation components run on the multi-tile bench (--tiles 2 or more)")
+    for variant in args.variant:  # an unknown field or a bad value fails before anything is simulated
+        from fusion.config import FusionConfig
+
+        try:
+            FusionConfig.preset(args.preset).with_overrides(variant.split(","))
+        except ValueError as exc:
+            return _fail(str(exc).replace("--set", "--variant", 1))
     if wants_extras(args) and not (region and args.baseline and not args.ablation):
         run_extras(args)  # --ablation, or --baseline --tiles 1: fusion.eval.ablations prints its own tables
         return 0
@@ -130,7 +145,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from fusion.eval.bench_region import run_region_bench
 
         run_region_bench(args.preset, args.sessions, gps_noise, args.seed, args.json, rows, config, print,
-                         args.tile_size, args.vertex_noise_m, args.tiles, args.sensor, baseline_config)
+                         args.tile_size, args.vertex_noise_m, args.tiles, args.sensor, baseline_config,
+                         args.variant)
         return 0
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=gps_noise, seed=args.seed,
               json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m,
@@ -192,6 +208,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a fusion configuration field (repeatable; fusion.config.FusionConfig), "
                         "e.g. --set extract_support_m=0 for an ablation")
+    p.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
+                   help="(multi-tile) one more fused row with these config overrides, on the same data "
+                        "(repeatable; --ablation components: one per method component)")
     p.add_argument("--throughput", action="store_true",
                    help="only measure field training throughput (points/s forward+backward, fusion.eval.perf)")
     from fusion.eval.ablations import add_bench_arguments

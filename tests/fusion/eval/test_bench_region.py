@@ -1,9 +1,15 @@
-"""Multi-tile bench helpers: the seam check and mesh merging (no fusion run)."""
+"""Multi-tile bench helpers: the seam check, mesh merging and the variant rows (no fusion run)."""
 
 from __future__ import annotations
 
-import numpy as np
+from types import SimpleNamespace
+from typing import Any
 
+import numpy as np
+import pytest
+
+from fusion.config import FusionConfig
+from fusion.eval import bench_region
 from fusion.eval.bench_region import merge_meshes, seam_gaps
 from fusion.types import FusedMesh, FusionResult
 
@@ -36,3 +42,52 @@ def test_merge_meshes_reindexes_faces() -> None:
     b = _mesh(np.eye(3) + 5)
     m = merge_meshes([a, FusedMesh.empty(), b])
     assert len(m.vertices) == 6 and m.faces.tolist() == [[0, 1, 2], [3, 4, 5]]
+
+
+def _fake_bench(monkeypatch: pytest.MonkeyPatch) -> tuple[list[str], list[FusionConfig]]:
+    """The region bench with simulation, preparation and fusion replaced by recorders."""
+    import fusion.eval.synth.simulate as simulate_module
+
+    simulated: list[str] = []
+    fused: list[FusionConfig] = []
+    monkeypatch.setattr(simulate_module, "simulate", lambda *a, **k: simulated.append("simulate"))
+    monkeypatch.setattr(bench_region, "prepare", lambda _d, cfg, **_: SimpleNamespace(submaps=[], config=cfg))
+
+    def fake_fuse(ctx: Any, keys: Any, fixed: Any, config: FusionConfig | None = None) -> dict[str, Any]:
+        fused.append(config or ctx.config)
+        return {"geo_f": 0.5 + 0.1 * len(fused)}
+
+    monkeypatch.setattr(bench_region, "_fuse", fake_fuse)
+    return simulated, fused
+
+
+def test_variants_are_fused_rows_with_their_overrides_on_the_same_data(monkeypatch: pytest.MonkeyPatch) -> None:
+    simulated, fused = _fake_bench(monkeypatch)
+    printed: list[str] = []
+    report = bench_region.run_region_bench("tiny", sessions=2, tiles=2, rows=["fused"], out=printed.append,
+                                           variants=["coarse_register=false", "sdf_robust_m=0.1,consensus=true"])
+    assert simulated == ["simulate"]  # one fleet for every row
+    assert list(report["rows"]) == ["fused", "coarse_register=false", "sdf_robust_m=0.1,consensus=true"]
+    base = FusionConfig.preset("tiny")
+    assert fused[0] == base
+    assert fused[1] == base.with_(coarse_register=False)
+    assert fused[2] == base.with_(sdf_robust_m=0.1, consensus=True)
+    table = printed[0]
+    assert "sdf_robust_m=0.1,consensus=true" in table and "0.800" in table  # the third row's geo F
+
+
+def test_a_bad_variant_fails_before_anything_is_simulated(monkeypatch: pytest.MonkeyPatch) -> None:
+    from fusion.eval import cli
+
+    simulated, fused = _fake_bench(monkeypatch)
+    with pytest.raises(ValueError, match="no_such_field"):
+        bench_region.run_region_bench("tiny", tiles=2, variants=["no_such_field=1"], out=lambda _: None)
+    assert cli.main(["bench", "--tiles", "2", "--variant", "coarse_register=maybe"]) != 0
+    assert cli.main(["bench", "--tiles", "1", "--variant", "coarse_register=false"]) != 0
+    assert simulated == [] and fused == []
+
+
+def test_every_ablation_component_is_a_valid_override() -> None:
+    base = FusionConfig()
+    for component in bench_region.COMPONENTS:
+        assert base.with_overrides(component.split(",")) != base, component
