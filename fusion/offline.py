@@ -123,7 +123,7 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     if fixed_poses is None:
         _align_regions(submaps, keys, config, tile_size, progress, refined, skipped, align_metrics)
     poses = fixed_poses if fixed_poses is not None else refined
-    return _reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped)
+    return reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped)
 
 
 def _staged(progress: ProgressCallback | None, label: str) -> ProgressCallback | None:
@@ -166,19 +166,28 @@ def _align_regions(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], con
             align_metrics.append(aligned.metrics | {"tiles": [list(t) for t in region.tiles]})
 
 
-def _reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], config: FusionConfig,
+def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], config: FusionConfig,
                        tile_size: float, progress: ProgressCallback | None, poses: dict[str, Pose],
                        on_tile: Callable[[tuple[int, int], FusionResult], None] | None,
-                       skipped: dict[str, str] | None) -> dict[tuple[int, int], FusionResult]:
+                       skipped: dict[str, str] | None,
+                       previous: dict[tuple[int, int], FusionResult] | None = None,
+                       ) -> dict[tuple[int, int], FusionResult]:
     """Each tile in order with every submap held at ``poses`` (else its GPS pose); neighbours
-    reconstructed earlier pin the shared border."""
+    reconstructed earlier (here, else in ``previous``: the tiles a re-fusion leaves as they are) pin the
+    shared border."""
     from fusion.reconstruct import reconstruct_tile
 
     results: dict[tuple[int, int], FusionResult] = {}
+    before = previous or {}
+
+    def border_of(k: tuple[int, int]) -> dict[str, Any] | None:
+        done = results.get(k) or before.get(k)
+        return done.border if done is not None else None
+
     for n, key in enumerate(keys):
         inputs = [replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=False)
                   for s in submaps if key in s.tiles]
-        pins = tiles.border_pins(*key, lambda k: results[k].border if k in results else None)
+        pins = tiles.border_pins(*key, border_of)
         label = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)})"
         try:
             result = reconstruct_tile(inputs, TileSpec(key[0], key[1], tile_size), config,

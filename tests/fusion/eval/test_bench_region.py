@@ -91,3 +91,29 @@ def test_every_ablation_component_is_a_valid_override() -> None:
     base = FusionConfig()
     for component in bench_region.COMPONENTS:
         assert base.with_overrides(component.split(",")) != base, component
+
+
+@pytest.mark.timeout(300)
+def test_add_session_aligns_only_the_new_session_and_refuses_only_its_tiles(tmp_path) -> None:  # noqa: ANN001
+    """The ``add_session`` row: the last session arrives in a map of the others; only its submaps are free
+    in the (incremental, fields frozen) alignment, and only the tiles it touches are reconstructed again."""
+    from fusion.eval.bench_context import prepare
+    from fusion.eval.synth.fleet import FleetParams
+    from fusion.eval.synth.simulate import simulate
+    from fusion.eval.synth.world import WorldParams
+
+    simulate(tmp_path, seed=6, sessions=2, gps_noise=(0.5, 0.5), sensor="exact",
+             world_params=WorldParams(core_max=(64.0, 32.0), margin=10.0, ground_res=0.5),
+             fleet_params=FleetParams(submap_length=15.0, sensor_range=10.0, submap_res=0.8, drive_margin=2.0))
+    config = FusionConfig.preset("tiny").with_(coarse_register=False)
+    ctx = prepare(tmp_path, config, tile_size=32.0, region=((0.0, 0.0), (64.0, 32.0)))
+    keys = [(0, 0), (1, 0)]
+    row = bench_region._add_session(ctx, keys)
+    last = max(s.input.session_id for s in ctx.submaps)
+    new = [s for s in ctx.submaps if s.input.session_id == last]
+    align = row["alignment"][0]
+    assert row["new_session"] == last and row["new_submaps"] == len(new) > 0
+    assert align["incremental"] and align["num_free"] == len(new) < align["num_submaps"]
+    touched = {t for s in new for t in s.tiles if t in keys}
+    assert row["tiles_refused"] == len(touched) >= 1 and row["tiles_fused"] == 2
+    assert row["add_s"] > 0 and row["geo_f"] > 0.3 and row["pose_trans_m"] < 1.0
