@@ -25,16 +25,45 @@ def _result(vertices: np.ndarray) -> FusionResult:
     return FusionResult(_mesh(vertices), {}, {}, {}, {})
 
 
-def test_seam_gaps_zero_when_border_vertices_coincide_and_flags_a_gap() -> None:
-    border = np.array([[10.0, y, 0.0] for y in np.arange(0.0, 10.0, 0.5)])
-    left = np.concatenate([border, [[5.0, 5.0, 0.0]]])
-    right = np.concatenate([border, [[15.0, 5.0, 0.0]]])
-    out = seam_gaps({(0, 0): _result(left), (1, 0): _result(right)}, 10.0, 0.25)
+def _strip(x_border: float, x_inner: float, ys: np.ndarray, z: float = 0.0) -> FusedMesh:
+    """A strip of triangles between the border line x = ``x_border`` and x = ``x_inner`` over ``ys``."""
+    n = len(ys)
+    v = np.concatenate([np.column_stack([np.full(n, x_border), ys, np.full(n, z)]),
+                        np.column_stack([np.full(n, x_inner), ys, np.full(n, z)])])
+    faces = [[k, k + 1, n + k] for k in range(n - 1)] + [[k + 1, n + k + 1, n + k] for k in range(n - 1)]
+    f = np.array(faces, np.int32)
+    return FusedMesh(v.astype(np.float32), f, np.ones(2 * n, np.uint8), np.ones(2 * n, np.float32),
+                     np.ones(len(f), np.uint8))
+
+
+def test_seam_gaps_measure_the_stretch_of_border_one_tile_meets_alone() -> None:
+    ys = np.arange(0.0, 10.01, 0.5)
+    left = FusionResult(_strip(10.0, 9.5, ys), {}, {}, {}, {})
+    out = seam_gaps({(0, 0): left, (1, 0): FusionResult(_strip(10.0, 10.5, ys), {}, {}, {}, {})}, 10.0, 0.25)
     assert out["seam_borders"] == 1 and out["seam_max_m"] == 0.0 and out["seam_far_share"] == 0.0
-    shifted = right.copy()
-    shifted[:len(border), 2] += 0.6  # the right tile's surface meets the border 0.6 m higher
-    out = seam_gaps({(0, 0): _result(left), (1, 0): _result(shifted)}, 10.0, 0.25)
-    assert abs(out["seam_max_m"] - 0.6) < 1e-5 and out["seam_far_share"] == 1.0
+    # the right tile's surface stops short of the border for 3 m (3 <= y <= 6): a 3 m gap
+    holed = np.concatenate([ys[ys <= 3.0], ys[ys >= 6.0]])
+    right = _strip(10.0, 10.5, holed)
+    keep = ~np.isclose(right.vertices[right.faces][:, :, 1].min(1), 3.0) | ~np.isclose(
+        right.vertices[right.faces][:, :, 1].max(1), 6.0)  # no face bridging the hole
+    right = FusedMesh(right.vertices, right.faces[keep], right.vertex_labels, right.vertex_confidence,
+                      right.face_labels[keep])
+    out = seam_gaps({(0, 0): left, (1, 0): FusionResult(right, {}, {}, {}, {})}, 10.0, 0.25)
+    assert 3.0 - 0.25 <= out["seam_max_m"] <= 3.0 and 0 < out["seam_far_share"] < 0.2  # within a voxel (sampling)
+    # the right tile's surface meets the border 0.6 m higher all along: a double surface the whole length
+    out = seam_gaps({(0, 0): left, (1, 0): FusionResult(_strip(10.0, 10.5, ys, z=0.6), {}, {}, {}, {})}, 10.0, 0.25)
+    assert abs(out["seam_max_m"] - 10.0) < 1e-6 and out["seam_far_share"] == 1.0
+
+
+def test_a_face_touching_the_border_in_one_vertex_is_no_seam() -> None:
+    """Only surface meeting the border along an edge makes a seam: a face of one tile touching the border
+    line in a single vertex, the other tile with nothing near, is no gap."""
+    touch = FusedMesh(np.array([[10.0, 5.0, 0.0], [9.5, 5.0, 0.0], [9.5, 5.5, 0.0]], np.float32),
+                      np.array([[0, 1, 2]], np.int32), np.ones(3, np.uint8), np.ones(3, np.float32), np.ones(1, np.uint8))
+    ys = np.arange(0.0, 3.01, 0.5)
+    out = seam_gaps({(0, 0): FusionResult(touch, {}, {}, {}, {}),
+                     (1, 0): FusionResult(_strip(10.0, 10.5, ys + 20.0), {}, {}, {}, {})}, 10.0, 0.25)
+    assert out["seam_max_m"] == pytest.approx(3.0)  # the right tile's 3 m of border alone; the touch adds none
 
 
 def test_merge_meshes_reindexes_faces() -> None:
