@@ -30,6 +30,6 @@ def test_a_contradicting_minority_moves_a_robust_fit_little() -> None:
             opt.zero_grad()
             robust_square(c - target, delta).mean().backward()
             opt.step()
-        fits[delta] = float(c)
+        fits[delta] = float(c.detach())
     assert abs(fits[0.0] - 0.2) < 1e-6
     assert abs(fits[0.1] - 0.025) < 1e-6
