@@ -319,7 +319,10 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
     from fusion.eval.synth.world import WorldParams
 
     cfg = config or FusionConfig.preset(preset)
-    variant_configs = {v: cfg.with_overrides(v.split(",")) for v in variants or []}  # bad keys fail before simulating
+    try:  # an unknown field or a bad value fails before anything is simulated
+        variant_configs = {v: cfg.with_overrides(v.split(",")) for v in variants or []}
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("--set", "--variant", 1)) from None
     size = float(tile_size or (128.0 if preset == "paper" else 64.0))
     rows = rows or ["gps", "fused"]
     with tempfile.TemporaryDirectory(prefix="fleetmap-bench-region-") as tmp:

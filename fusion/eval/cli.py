@@ -108,13 +108,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
         args.ablation = None
     if args.variant and not region:
         return _fail("--variant and --ablation components run on the multi-tile bench (--tiles 2 or more)")
-    for variant in args.variant:  # an unknown field or a bad value fails before anything is simulated
-        from fusion.config import FusionConfig
-
-        try:
-            FusionConfig.preset(args.preset).with_overrides(variant.split(","))
-        except ValueError as exc:
-            return _fail(str(exc).replace("--set", "--variant", 1))
     if wants_extras(args) and not (region and args.baseline and not args.ablation):
         run_extras(args)  # --ablation, or --baseline --tiles 1: fusion.eval.ablations prints its own tables
         return 0
