@@ -37,12 +37,12 @@ import torch
 from fusion.coarse import coarse_register
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
-from fusion.field import SemanticSDFField
+from fusion.field import SemanticSDFField, field_from_state
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
-from fusion.reconstruct import TileProblem, build_problem, overlapping
+from fusion.reconstruct import TileProblem, build_problem, overlapping, set_consensus
 from fusion.runtime import resolve_device
-from fusion.sampling import SurfacePool, consensus_targets, face_geometry, sample_batch
+from fusion.sampling import SurfacePool, face_geometry, sample_batch
 from fusion.schedule import content_iterations, tile_content
 from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
 from fusion.types import Pose, ProgressCallback, SubmapInput, TileSpec
@@ -70,14 +70,6 @@ class _Tile:
     field: SemanticSDFField
     frozen: bool
     share: float = 0.0
-
-
-def field_from_state(state: dict[str, torch.Tensor], config: FusionConfig) -> SemanticSDFField:
-    """A tile field (tile frame) rebuilt from an ``AlignResult.fields`` entry."""
-    lo = state["norm.lo"].float()
-    f = SemanticSDFField(config, lo, lo + state["norm.extent"].float())
-    f.load_state_dict(state)
-    return f
 
 
 def align_levels(it: int, iterations: int, config: FusionConfig) -> int:
@@ -310,7 +302,4 @@ def _posed(t: _Tile, region: torch.Tensor) -> torch.Tensor:
 
 def _update_consensus(t: _Tile, region: torch.Tensor, config: FusionConfig) -> None:
     """Cross-session confidence targets of a tile's pool at the current region poses."""
-    session = torch.as_tensor(t.problem.pool_session, device=t.problem.pool.points.device)
-    t.problem.pool.conf_target = consensus_targets(_posed(t, region), session, config.consensus_radius_m,
-                                                   config.consensus_cover_m, keep_fraction=config.consensus_keep,
-                                                   c_th=config.c_th)
+    set_consensus(t.problem, t.shift @ region[t.index], config)

@@ -145,3 +145,11 @@ class SemanticSDFField(nn.Module):
         probes = torch.cat([x_map[:, None, :] + offs, x_map[:, None, :] - offs], dim=1)  # (n, 6, 3)
         s = self.sdf(probes.reshape(-1, 3)).view(n, 6)
         return (s[:, :3] - s[:, 3:]) / (2 * eps_m)
+
+
+def field_from_state(state: dict[str, Tensor], config: FusionConfig) -> SemanticSDFField:
+    """A tile field (tile frame) rebuilt from a saved ``state_dict`` (its box travels in ``norm.*``)."""
+    lo = state["norm.lo"].float()
+    f = SemanticSDFField(config, lo, lo + state["norm.extent"].float())
+    f.load_state_dict(state)
+    return f

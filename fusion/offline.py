@@ -120,10 +120,11 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     ``align_metrics``: if given, each region's alignment metrics are appended to it."""
     refined = {} if refined is None else refined
     keys = sorted({(int(i), int(j)) for i, j in tile_keys})
+    fields: dict[tuple[int, int], dict[str, Any]] = {}
     if fixed_poses is None:
-        _align_regions(submaps, keys, config, tile_size, progress, refined, skipped, align_metrics)
+        _align_regions(submaps, keys, config, tile_size, progress, refined, skipped, align_metrics, fields)
     poses = fixed_poses if fixed_poses is not None else refined
-    return reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped)
+    return reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped, warm=fields)
 
 
 def _staged(progress: ProgressCallback | None, label: str) -> ProgressCallback | None:
@@ -145,8 +146,10 @@ def _skip_or_raise(skipped: dict[str, str] | None, what: str, exc: FusionError) 
 
 def _align_regions(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], config: FusionConfig,
                    tile_size: float, progress: ProgressCallback | None, refined: dict[str, Pose],
-                   skipped: dict[str, str] | None, align_metrics: list[dict[str, Any]] | None) -> None:
-    """Align every region of ``keys`` (all its submaps free); ``refined`` gets the aligned poses."""
+                   skipped: dict[str, str] | None, align_metrics: list[dict[str, Any]] | None,
+                   fields: dict[tuple[int, int], dict[str, Any]]) -> None:
+    """Align every region of ``keys`` (all its submaps free); ``refined`` gets the aligned poses,
+    ``fields`` each tile's field state (the reconstruction's warm start)."""
     from fusion.align import align_region
 
     by_id = {s.input.id: s for s in submaps}
@@ -162,6 +165,7 @@ def _align_regions(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], con
             _skip_or_raise(skipped, "region " + ",".join(f"{i}_{j}" for i, j in region.tiles), exc)
             continue
         refined.update(aligned.poses)
+        fields.update(aligned.fields)
         if align_metrics is not None:
             align_metrics.append(aligned.metrics | {"tiles": [list(t) for t in region.tiles]})
 
@@ -171,10 +175,11 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
                        on_tile: Callable[[tuple[int, int], FusionResult], None] | None,
                        skipped: dict[str, str] | None,
                        previous: dict[tuple[int, int], FusionResult] | None = None,
+                       warm: dict[tuple[int, int], dict[str, Any]] | None = None,
                        ) -> dict[tuple[int, int], FusionResult]:
     """Each tile in order with every submap held at ``poses`` (else its GPS pose); neighbours
     reconstructed earlier (here, else in ``previous``: the tiles a re-fusion leaves as they are) pin the
-    shared border."""
+    shared border. ``warm``: field states by tile to start from (``reconstruct_tile``)."""
     from fusion.reconstruct import reconstruct_tile
 
     results: dict[tuple[int, int], FusionResult] = {}
@@ -191,7 +196,8 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
         label = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)})"
         try:
             result = reconstruct_tile(inputs, TileSpec(key[0], key[1], tile_size), config,
-                                      progress=_staged(progress, label), border_pins=pins or None)
+                                      progress=_staged(progress, label), border_pins=pins or None,
+                                      warm=(warm or {}).get(key))
         except FusionError as exc:
             _skip_or_raise(skipped, f"{key[0]}_{key[1]}", exc)
             continue

@@ -20,7 +20,7 @@ import torch
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
 from fusion.extract import extract_mesh
-from fusion.field import SemanticSDFField
+from fusion.field import SemanticSDFField, field_from_state
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.runtime import resolve_device
@@ -128,14 +128,21 @@ def build_problem(submaps: list[SubmapInput], tile: TileSpec, config: FusionConf
 def update_consensus(problem: TileProblem, config: FusionConfig) -> float:
     """Recompute the confidence targets of the surface pool from the current poses; returns their mean."""
     with torch.no_grad():
-        poses = problem.poses()
-        pool_tile = (poses[problem.pool.submap][:, :3, :3].float() @ problem.pool.points[:, :, None])[:, :, 0]
-        pool_tile = pool_tile + poses[problem.pool.submap][:, :3, 3].float()
-    session = torch.as_tensor(problem.pool_session, device=pool_tile.device)
-    target = consensus_targets(pool_tile, session, config.consensus_radius_m, config.consensus_cover_m,
-                                keep_fraction=config.consensus_keep, c_th=config.c_th)
-    problem.pool.conf_target = target
-    return float(target.mean())
+        set_consensus(problem, problem.poses(), config)
+    return float(problem.pool.conf_target.mean())
+
+
+def set_consensus(problem: TileProblem, poses_tile: torch.Tensor, config: FusionConfig) -> None:
+    """The pool's confidence targets (``fusion.sampling.consensus_targets``) at ``poses_tile`` (M, 4, 4),
+    the tile frame: free-space evidence (``consensus_evidence``) takes the posed normals."""
+    pool = problem.pool
+    pose = poses_tile[pool.submap].float()
+    points = (pose[:, :3, :3] @ pool.points[:, :, None])[:, :, 0] + pose[:, :3, 3]
+    normals = (pose[:, :3, :3] @ pool.normals[:, :, None])[:, :, 0] if config.consensus_evidence == "free_space" else None
+    session = torch.as_tensor(problem.pool_session, device=points.device)
+    pool.conf_target = consensus_targets(points, session, config.consensus_radius_m, config.consensus_cover_m,
+                                         keep_fraction=config.consensus_keep, c_th=config.c_th, normals=normals,
+                                         column_m=config.consensus_column_m)
 
 
 def active_levels(it: int, config: FusionConfig) -> int:
@@ -152,9 +159,14 @@ def reconstruct_tile(
     progress: ProgressCallback | None = None,
     border_pins: dict | None = None,
     device: str | None = None,
+    warm: dict[str, torch.Tensor] | None = None,
 ) -> FusionResult:
     """Fuse the submaps touching ``tile`` into a semantic mesh (map frame) and refine free submaps'
     poses (the service holds every pose: its alignment jobs own them).
+
+    ``warm``: a field state of this tile (its region alignment's, trained on the same data at nearly
+    these poses) to start from: ``recon_warm_fraction`` of the steps at every level instead of a cold
+    start's full progressive schedule (``recon_warm_fraction`` 0: always cold).
 
     Raises ``FusionError`` when no submap overlaps the tile (+ margin).
     """
@@ -164,13 +176,19 @@ def reconstruct_tile(
     gen = torch.Generator().manual_seed(config.seed)
     problem = build_problem(submaps, tile, config, dev)
     content = tile_content(_posed_pool(problem), problem.lo, problem.hi, config)  # steps ∝ content (recorded)
-    config = config.with_(iterations=content_iterations(config.iterations, [content], config))
-    field = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
-    allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
-    if callable(allocate):
-        allocate(field.norm(_posed_pool(problem)))
+    steps = content_iterations(config.iterations, [content], config)
+    field = _warm_field(warm, config, dev)
+    if field is not None:
+        steps = max(1, round(steps * config.recon_warm_fraction))
+    warm_start = field is not None
+    config = config.with_(iterations=steps)
+    if field is None:
+        field = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
+        allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
+        if callable(allocate):
+            allocate(field.norm(_posed_pool(problem)))
     t_train = time.perf_counter()
-    losses, evaluated = _train(problem, field, config, gen, progress)
+    losses, evaluated = _train(problem, field, config, gen, progress, all_levels=warm_start)
     train_s = time.perf_counter() - t_train
     t_extract = time.perf_counter()
     mesh, border, ex_stats = _extract(problem, field, tile, config, border_pins, progress, dev)
@@ -184,6 +202,7 @@ def reconstruct_tile(
         "duration_extract_s": extract_s,
         "points_per_s": evaluated / max(train_s, 1e-9),
         "device": str(dev),
+        "warm_start": warm_start,
         "num_submaps": len(problem.submaps),
         "num_free": int(sum(sm.free for sm in problem.submaps)),
         "pool_points": int(problem.pool.points.shape[0]),
@@ -194,12 +213,24 @@ def reconstruct_tile(
     return FusionResult(mesh, poses, metrics, config.to_dict(), border)
 
 
+def _warm_field(warm: dict[str, torch.Tensor] | None, config: FusionConfig,
+                dev: torch.device) -> SemanticSDFField | None:
+    """The warm-start field, or None: no state, warm starts off, or a state of another field layout (the
+    preset changed since the alignment: a cold start, not a failed job)."""
+    if warm is None or config.recon_warm_fraction <= 0:
+        return None
+    try:
+        return field_from_state(warm, config).to(dev)
+    except (KeyError, RuntimeError):
+        return None
+
+
 def _train(
     problem: TileProblem, field: SemanticSDFField, config: FusionConfig, gen: torch.Generator,
-    progress: ProgressCallback | None,
+    progress: ProgressCallback | None, all_levels: bool = False,
 ) -> tuple[dict[str, float], int]:
-    """The paper's loop on one tile: LOD → posed batch → field + pose terms → step. Returns the last
-    losses and the number of field evaluations."""
+    """The paper's loop on one tile: LOD (``all_levels``: every level from the start, a warm field) →
+    posed batch → field + pose terms → step. Returns the last losses and the number of field evaluations."""
     terms_of_poses = PoseTerms.of(problem.submaps, problem.lo.device)
     optimiser = Optimiser(list(field.parameters()), problem.poses, config, config.iterations, config.pose_warmup)
     consensus = consensus_iterations(config, config.iterations)
@@ -208,7 +239,7 @@ def _train(
     for it in range(config.iterations):
         if it in consensus:
             update_consensus(problem, config)
-        field.set_active_levels(active_levels(it, config))
+        field.set_active_levels(config.num_levels if all_levels else active_levels(it, config))
         poses64 = problem.poses()
         batch = sample_batch(problem.pool, problem.boxes, poses64.float(), problem.lo, problem.hi,
                              config.surface_samples, config.space_samples, config.sigma_s, gen)

@@ -222,13 +222,23 @@ def calibrated_confidence(fraction: Tensor, keep_fraction: float, c_th: float) -
 
 def consensus_targets(
     pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27,
-    keep_fraction: float | None = None, c_th: float = 0.7,
+    keep_fraction: float | None = None, c_th: float = 0.7, normals: Tensor | None = None,
+    column_m: float = 3.0,
 ) -> Tensor:
     """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
-    that observed the neighbourhood (a surface point within ~``cover_m``) which also observed this
-    surface (a point within ~``near_m``). The road under a parked car that one session of five saw
-    keeps ≈ 0.8, the car itself gets ≈ 0.2; a facade that only the sessions on its street could see
-    keeps 1, because the others observed nothing within ``cover_m`` of it.
+    with evidence about this surface that saw it (had a point within ~``near_m``).
+
+    Evidence, without ``normals`` ("cover"): a session observed the neighbourhood (a point within
+    ~``cover_m``). The road under a parked car that one session of five saw keeps ≈ 0.8, the car itself
+    gets ≈ 0.2; a facade that only the sessions on its street could see keeps 1. But a session that saw
+    the pavement at a wall's foot and not the wall (its camera pointed elsewhere) votes against the wall.
+
+    With ``normals`` (P, 3) (posed, unit; "free space"): a session counts against a surface only if it
+    saw through it: the first thing it has below the point (within ``column_m``, the point's column grown
+    by ``near_m``) is an upward-facing surface, with nothing of its own in between. A parked car one
+    session saw stands where the others saw bare road: dropped. The upper wall a session did not see
+    stands above its lower wall (not upward-facing): no evidence, kept. A session that saw nothing there
+    (another street, a hole) has no say either way.
 
     "Within r" is decided on occupancy grids (cells of r/2, r/4 for the cover), dilated by r with
     shifted ORs along each axis: a cube of half-width r up to one cell, not a ball. That is O(P + cells) per
@@ -236,28 +246,69 @@ def consensus_targets(
     the paper's 2 M points on 2 cores with k-d trees; the thresholds are heuristics either way).
     """
     near = torch.zeros(len(pool_tile), dtype=torch.int32, device=pool_tile.device)
-    cover = torch.zeros_like(near)
+    against = torch.zeros_like(near)
     if len(pool_tile) == 0:
         return near.float()
     near_hit = _within(pool_tile, pool_session, near_m, 2, max_cells)
-    cover_hit = _within(pool_tile, pool_session, cover_m, 4, max_cells)
-    for hit_n, hit_c in zip(near_hit, cover_hit, strict=True):
+    if normals is None:
+        evidence = _within(pool_tile, pool_session, cover_m, 4, max_cells)
+    else:
+        evidence = _seen_through(pool_tile, normals, pool_session, near_m, column_m, max_cells)
+    for hit_n, hit_e in zip(near_hit, evidence, strict=True):
         near += hit_n
-        cover += hit_c
-    fraction = (near / cover.clamp(min=1)).float()
+        against += hit_e & ~hit_n
+    fraction = (near / (near + against).clamp(min=1)).float()
     return fraction if keep_fraction is None else calibrated_confidence(fraction, keep_fraction, c_th)
+
+
+UPWARD_MIN_NZ = 0.7  # a surface faces up (ground, a roof, a table) when its normal is within ~45° of +z
+
+
+def _seen_through(points: Tensor, normals: Tensor, session: Tensor, near_m: float, column_m: float,
+                  max_cells: int) -> list[Tensor]:
+    """Per session: (P,) bool, whether the first surface the session has below each point (more than
+    ``near_m`` and at most ``column_m`` down, columns grown by ``near_m`` in x and y) faces up."""
+    cell, dims, idx = _cells(points, near_m / 2, max_cells)
+    k = max(1, round(near_m / cell))
+    deepest = int(column_m / cell + 1e-6)
+    flat_xy = idx[:, 0] * dims[1] + idx[:, 1]
+    up = normals[:, 2] >= UPWARD_MIN_NZ
+    out = []
+    for s in torch.unique(session):
+        mine = session == s
+        any_grid = torch.zeros(dims, dtype=torch.bool, device=points.device)
+        up_grid = torch.zeros_like(any_grid)
+        any_grid[idx[mine, 0], idx[mine, 1], idx[mine, 2]] = True
+        up_grid[idx[mine & up, 0], idx[mine & up, 1], idx[mine & up, 2]] = True
+        any_col = _dilate(any_grid, k, (0, 1)).view(-1, dims[2])
+        up_col = _dilate(up_grid, k, (0, 1)).view(-1, dims[2])
+        decided = torch.zeros(len(points), dtype=torch.bool, device=points.device)
+        through = torch.zeros_like(decided)
+        for d in range(k + 1, deepest + 1):
+            z = idx[:, 2] - d
+            ok = z >= 0
+            zc = z.clamp(min=0)
+            hit = any_col[flat_xy, zc] & ok & ~decided
+            through |= hit & up_col[flat_xy, zc]
+            decided |= hit
+        out.append(through)
+    return out
+
+
+def _cells(points: Tensor, cell: float, max_cells: int) -> tuple[float, list[int], Tensor]:
+    """Cell size (grown ×1.5 until the grid has at most ``max_cells``), grid dims and each point's cell."""
+    lo = points.min(0).values
+    extent = points.max(0).values - lo
+    while float(torch.prod(torch.floor(extent / cell) + 1)) > max_cells:  # huge boxes: coarser cells
+        cell *= 1.5
+    idx = torch.floor((points - lo) / cell).long()
+    return cell, [int(d) + 1 for d in idx.max(0).values], idx
 
 
 def _within(points: Tensor, session: Tensor, radius_m: float, cells_per_radius: int, max_cells: int) -> list[Tensor]:
     """Per session: (P,) bool, whether the session has a point within ``radius_m`` (cube, ±1 cell)."""
-    lo = points.min(0).values
-    extent = points.max(0).values - lo
-    cell = radius_m / cells_per_radius
-    while float(torch.prod(torch.floor(extent / cell) + 1)) > max_cells:  # huge boxes: coarser cells
-        cell *= 1.5
+    cell, dims, idx = _cells(points, radius_m / cells_per_radius, max_cells)
     k = max(1, round(radius_m / cell))
-    idx = torch.floor((points - lo) / cell).long()
-    dims = [int(d) + 1 for d in idx.max(0).values]
     flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
     out = []
     for s in torch.unique(session):
@@ -267,10 +318,10 @@ def _within(points: Tensor, session: Tensor, radius_m: float, cells_per_radius: 
     return out
 
 
-def _dilate(grid: Tensor, k: int) -> Tensor:
-    """Boolean dilation by a (2k+1)³ cube, one axis at a time with shifted ORs (max_pool3d on float
-    grids was ~10× slower on CPU)."""
-    for axis in range(grid.ndim):
+def _dilate(grid: Tensor, k: int, axes: tuple[int, ...] | None = None) -> Tensor:
+    """Boolean dilation by a (2k+1)³ cube (along ``axes``: all by default), one axis at a time with
+    shifted ORs (max_pool3d on float grids was ~10× slower on CPU)."""
+    for axis in range(grid.ndim) if axes is None else axes:
         src, grid = grid, grid.clone()
         n = src.shape[axis]
         for o in range(1, min(k, n - 1) + 1):

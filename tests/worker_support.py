@@ -123,6 +123,7 @@ class FakeFusion(_FakeStage):
     """Stands in for the tile reconstruction (``worker.runner._fuse``): a two-triangle mesh."""
 
     def __call__(self, inputs: Any, keeper: Any) -> FusionResult:
+        self.warm = inputs.warm
         poses = self._moved(inputs.tile, inputs.submaps)
         return FusionResult(fake_mesh(inputs.tile), poses, {"losses": {"total": 0.1}}, inputs.config.to_dict())
 

@@ -1,5 +1,6 @@
 """What a job reads. A reconstruct job: the fusion config, the tile's aligned submaps held at their
-refined poses, the neighbours' border pins, and the input fingerprint that makes it idempotent. An
+refined poses, the neighbours' border pins, the tile's alignment field (the warm start), and the input
+fingerprint that makes it idempotent. An
 align job: every submap touching the region's tiles, the unaligned ones free.
 
 Frames: submap meshes are in their local frame; ``pose_init`` maps local → map frame (the refined pose
@@ -46,6 +47,8 @@ class TileInputs:
     submaps: list[SubmapInput] = field(default_factory=list)
     border_pins: dict[str, Any] = field(default_factory=dict)
     pending: int = 0  # submaps of the tile still waiting for their alignment (left out)
+    warm_sha256: str | None = None  # the tile's last alignment field blob: the reconstruction starts from it
+    warm: bytes | None = None  # its bytes (a serialised state dict), read by load_meshes
 
 
 @dataclass
@@ -68,13 +71,17 @@ def _pose_init(submap: Submap) -> Pose:
     return Pose.from_json(submap.pose_refined or submap.pose_gps)
 
 
-def fingerprint(tile: TileSpec, config: FusionConfig, submaps: list[tuple[Submap, Pose, bool]]) -> str:
-    """sha256 over the tile, the fusion config and the sorted submap ids, mesh hashes, initial poses."""
+def fingerprint(tile: TileSpec, config: FusionConfig, submaps: list[tuple[Submap, Pose, bool]],
+                warm_sha256: str | None = None) -> str:
+    """sha256 over the tile, the fusion config, the sorted submap ids, mesh hashes, initial poses and
+    the field the reconstruction starts from (if any)."""
     doc = {
         "tile": [tile.i, tile.j, tile.size_m],
         "config": config.to_dict(),
         "submaps": sorted([s.id, s.mesh_sha256, pose.to_json(), free] for s, pose, free in submaps),
     }
+    if warm_sha256 is not None:
+        doc["warm"] = warm_sha256
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
@@ -134,13 +141,16 @@ def _submaps_touching(db: Session, keys: list[tuple[int, int]]) -> list[Submap]:
 
 def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
     """The aligned submaps of tile (i, j), every one held at its refined pose (the alignment owns the
-    poses); those still waiting for an alignment are counted in ``pending`` and left out."""
+    poses); those still waiting for an alignment are counted in ``pending`` and left out. The tile's
+    last alignment field is the warm start (none when ``recon_warm_fraction`` is 0)."""
     tile = TileSpec(i, j, settings.tile_size)
     config = fusion_config(settings)
     submaps = _submaps_touching(db, [(i, j)])
     rows = [(s, _pose_init(s), False) for s in submaps if s.pose_refined]
-    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows),
-                      pending=len(submaps) - len(rows))
+    row = db.get(Tile, (i, j))
+    warm = row.align_field_sha256 if row is not None and config.recon_warm_fraction > 0 else None
+    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows, warm),
+                      pending=len(submaps) - len(rows), warm_sha256=warm)
 
 
 def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]]) -> RegionInputs:
@@ -179,9 +189,10 @@ def load_submaps(
 
 
 def load_meshes(db: Session, blobs: BlobStore, settings: Settings, inputs: TileInputs) -> None:
-    """Read the submap meshes and the neighbours' border pins into ``inputs``."""
+    """Read the submap meshes, the neighbours' border pins and the warm-start field into ``inputs``."""
     inputs.submaps = load_submaps(blobs, settings, inputs.rows)
     inputs.border_pins = _border_pins(db, blobs, inputs.tile.i, inputs.tile.j)
+    inputs.warm = blobs.get(inputs.warm_sha256) if inputs.warm_sha256 else None
 
 
 def pose_change(a: Pose, b: Pose) -> tuple[float, float]:

@@ -88,12 +88,19 @@ def _torch_threads() -> None:
 
 
 def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
-    """Reconstruct one tile with every pose held (torch: imported in the worker process only)."""
+    """Reconstruct one tile with every pose held, from its alignment field where it has one (torch:
+    imported in the worker process only)."""
+    import io
+
+    import torch
+
     from fusion.reconstruct import reconstruct_tile
 
     _torch_threads()
+    warm = torch.load(io.BytesIO(inputs.warm), weights_only=True) if inputs.warm else None
     return reconstruct_tile(
-        inputs.submaps, inputs.tile, inputs.config, progress=keeper, border_pins=inputs.border_pins or None
+        inputs.submaps, inputs.tile, inputs.config, progress=keeper, border_pins=inputs.border_pins or None,
+        warm=warm,
     )
 
 

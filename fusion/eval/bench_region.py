@@ -195,7 +195,8 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]]) -> dict[str, An
     skipped: dict[str, str] = {}
     t0 = time.perf_counter()
     before = align_region([replace(s.input, pose_init=s.pose_gps, free=True) for s in old], specs, cfg)
-    map_before = reconstruct_tiles(old, keys, cfg, ctx.tile_size, None, before.poses, None, skipped)
+    map_before = reconstruct_tiles(old, keys, cfg, ctx.tile_size, None, before.poses, None, skipped,
+                                   warm=before.fields)
     before_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     held = [replace(s.input, pose_init=before.poses[s.input.id], free=False) for s in old]
@@ -204,7 +205,7 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]]) -> dict[str, An
     poses = before.poses | added.poses
     touched = sorted({t for s in new for t in s.tiles if t in set(keys)})
     again = reconstruct_tiles(ctx.submaps, touched, cfg, ctx.tile_size, None, poses, None, skipped,
-                              previous=map_before)
+                              previous=map_before, warm=before.fields | added.fields)
     add_s = time.perf_counter() - t0
     results = map_before | again
     figs = evaluate_region(ctx, results, poses) | seam_gaps(results, ctx.tile_size, cfg.extract_voxel_m)

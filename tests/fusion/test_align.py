@@ -77,3 +77,32 @@ def test_align_levels_capped() -> None:
     cfg = tiny_config(align_max_levels=5)
     assert align_levels(0, 100, cfg) == cfg.lod_start_levels
     assert max(align_levels(i, 100, cfg) for i in range(100)) == 5
+
+
+def test_reconstruction_starts_from_the_alignment_field() -> None:
+    """A warm start carries the aligned field's surface: one step from it already extracts the street
+    (a cold start's single step does not), a layout mismatch falls back to a cold start, and
+    ``recon_warm_fraction`` 0 ignores the state."""
+    from fusion.reconstruct import reconstruct_tile
+
+    subs = _scene(offset=(0.0, 0.0, 0.0), yaw_deg=0.0)
+    cfg = _config()
+    aligned = align_region(subs, TILES, cfg)
+    held = [replace(s, pose_init=aligned.poses[s.id], free=False) for s in subs]
+    state = aligned.fields[(0, 0)]
+    one_step = cfg.with_(iterations=3, recon_warm_fraction=1 / 3, schedule_min_fraction=1.0)
+    warm = reconstruct_tile(held, TILES[0], one_step, warm=state)
+    cold = reconstruct_tile(held, TILES[0], one_step)
+    assert warm.metrics["warm_start"] and warm.metrics["iterations"] == 1
+    assert not cold.metrics["warm_start"] and cold.metrics["iterations"] == 3
+
+    def ground_share(mesh) -> float:  # faces on the street's ground plane (z ≈ 0), of its 8 m × 16 m in the tile
+        v = mesh.vertices[mesh.faces].mean(axis=1)
+        return float(np.sum(np.abs(v[:, 2]) < 0.3)) / max(1, len(mesh.faces))
+
+    assert len(warm.mesh.faces) > 0 and ground_share(warm.mesh) > 0.5
+    assert ground_share(cold.mesh) < ground_share(warm.mesh) - 0.2, (ground_share(cold.mesh), ground_share(warm.mesh))
+    other = reconstruct_tile(held, TILES[0], one_step.with_(num_levels=4), warm=state)
+    assert not other.metrics["warm_start"]
+    off = reconstruct_tile(held, TILES[0], one_step.with_(recon_warm_fraction=0.0), warm=state)
+    assert not off.metrics["warm_start"] and off.metrics["iterations"] == 3

@@ -41,6 +41,49 @@ def test_consensus_separates_transients_from_the_static_world() -> None:
     assert 0.2 < target.mean() < 1.0
 
 
+def test_free_space_evidence_counts_only_the_sessions_that_saw_through_a_surface() -> None:
+    """Five sessions on one street. Session 0 alone saw a parked car (the others saw bare road there) and
+    the whole of a 6 m wall at the street's edge; sessions 1-2 saw its lower 2 m only (a camera's vertical
+    field of view), 3-4 nothing of it (their pavement ends 2 m short). The neighbourhood rule votes part of
+    the wall down (covering sessions missed it); free-space evidence keeps all of it (nobody saw through
+    it) and still drops the car."""
+    rng = np.random.default_rng(3)
+    pts, nrm, sess = [], [], []
+
+    def add(p: np.ndarray, n: tuple[float, float, float], s: int) -> None:
+        pts.append(p)
+        nrm.append(np.tile(n, (len(p), 1)))
+        sess.append(np.full(len(p), s))
+
+    for s in range(5):
+        add(_plane(rng, (0, 40), (0, 8 if s < 3 else 6), 0.0, 4000), (0, 0, 1), s)
+    car_top = _plane(rng, (10, 14), (2, 4), 1.6, 300)
+    car_side = np.column_stack([rng.uniform(10, 14, 300), np.full(300, 2.0), rng.uniform(0.8, 1.6, 300)])
+    add(car_top, (0, 0, 1), 0)
+    add(car_side, (0, -1, 0), 0)
+    wall_top = 6.0
+    for s, top in ((0, wall_top), (1, 2.0), (2, 2.0)):
+        add(np.column_stack([rng.uniform(0, 40, 3000), np.full(3000, 8.0), rng.uniform(0, top, 3000)]), (0, -1, 0), s)
+    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
+    n = torch.tensor(np.concatenate(nrm), dtype=torch.float32)
+    s = torch.tensor(np.concatenate(sess))
+    n_road = 5 * 4000
+    car = slice(n_road, n_road + 600)
+    wall0 = slice(n_road + 600, n_road + 3600)
+    band = torch.zeros(len(p), dtype=torch.bool)
+    band[wall0] = (p[wall0, 2] > 3.0) & (p[wall0, 2] < 4.5)  # above what 1-2 saw, within the others' cover
+
+    free = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0)
+    cover = consensus_targets(p, s, 0.5, 2.5)
+    assert free[car].max() <= 0.2 + 1e-6  # four sessions saw bare road where it stood
+    assert cover[band].max() < 0.7 and free[wall0].min() == 1.0
+    road_xy = p[:n_road, :2]
+    under_car = (road_xy[:, 0] > 10.5) & (road_xy[:, 0] < 13.5) & (road_xy[:, 1] > 2.5) & (road_xy[:, 1] < 3.5)
+    assert free[:n_road][under_car].min() == 1.0  # the car's owner had nothing below it: no say
+    # without the column (column_m tiny) nobody has evidence against anything: every target is 1
+    assert consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=0.1).min() == 1.0
+
+
 def test_calibrated_confidence_keeps_what_enough_observers_saw() -> None:
     """c_th 0.7, keep 0.55: 2 of 3 and 3 of 5 observers keep a surface (the raw fraction, 0.67 and 0.6,
     dropped both), 1 of 2, 1 of 3 and 2 of 5 do not. Monotone, 0 and 1 fixed; keep = c_th is the raw fraction."""

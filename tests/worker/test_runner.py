@@ -75,6 +75,27 @@ def test_a_failed_fusion_counts_its_attempt(env: Any, monkeypatch: pytest.Monkey
     assert _run(env) is Outcome.skipped  # a finished job is not run again
 
 
+def test_the_reconstruction_starts_from_its_tiles_alignment_field(env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reconstruct job is given the field its region's alignment left in the tile (the warm start),
+    and that field is part of the job's fingerprint: a new field is a new input."""
+    from worker.inputs import plan_tile
+
+    monkeypatch.setattr(runner, "_align", FakeAlign())
+    assert _run(env) is Outcome.succeeded
+    with env.db() as db:
+        warm = plan_tile(db, env.settings, 0, 0)
+        tile = db.get(Tile, (0, 0))
+        env.job_id, field_sha = tile.job_id, tile.align_field_sha256
+        tile.align_field_sha256 = None
+        cold = plan_tile(db, env.settings, 0, 0)
+        db.rollback()
+    assert warm.warm_sha256 == field_sha and cold.warm_sha256 is None and warm.fingerprint != cold.fingerprint
+    fusion = FakeFusion()
+    monkeypatch.setattr(runner, "_fuse", fusion)
+    assert _run(env) is Outcome.succeeded
+    assert fusion.warm == b"field of 0,0"
+
+
 def _sample(name: str, **labels: str) -> float:
     from worker import metrics
 
