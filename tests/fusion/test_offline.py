@@ -73,11 +73,16 @@ def test_fuse_directory_writes_tiles_and_poses(uploads: Path, tmp_path: Path) ->
     assert events and events[-1].stage.startswith("tile ")
 
 
-def _fake_fuse_tile(calls: list):
+def _fake_fuse_tile(calls: list, warmed: list | None = None):
+    """A stand-in ``reconstruct_tile``: records (tile, inputs, pins) in ``calls`` and whether it was
+    given a warm-start field in ``warmed``."""
     from fusion.types import FusedMesh, FusionResult
 
-    def fake(submaps, tile, config, progress=None, border_pins=None, device=None):
+    warmed = [] if warmed is None else warmed
+
+    def fake(submaps, tile, config, progress=None, border_pins=None, device=None, warm=None):
         calls.append((tile, {s.id: (s.free, s.pose_init) for s in submaps}, border_pins))
+        warmed.append(warm is not None)
         border = {side: {"tile": (tile.i, tile.j), "side": side} for side in ("x0", "x1", "y0", "y1")}
         return FusionResult(FusedMesh.empty(), {}, {"points_per_s": 1.0}, {}, border)
 
@@ -100,11 +105,14 @@ def test_region_aligned_then_tiles_reconstructed_with_fixed_poses(
     runs = []
     for order in (keys, list(reversed(keys)), keys[1::2] + keys[0::2]):
         calls: list = []
-        monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", _fake_fuse_tile(calls))
+        warmed: list = []
+        monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", _fake_fuse_tile(calls, warmed))
         refined: dict = {}
         align: list = []
         fuse_tiles(submaps, order, cfg, TILE, refined=refined, align_metrics=align)
         runs.append((calls, refined))
+        trained = set(align[0]["tile_pool_points"])  # the tiles the alignment trained a field in
+        assert warmed == [f"{t.i}_{t.j}" in trained for t, _, _ in calls] and any(warmed)
         assert len(align) == 1 and align[0]["num_free"] == len(submaps)
         assert [(t.i, t.j) for t, _, _ in calls] == keys  # sorted, whatever the order given
         fused: set = set()
@@ -131,13 +139,15 @@ def test_fixed_poses_skip_alignment(multi_tile_uploads: Path, monkeypatch: pytes
         raise AssertionError("alignment must not run with fixed poses")
 
     calls: list = []
-    monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", _fake_fuse_tile(calls))
+    warmed: list = []
+    monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", _fake_fuse_tile(calls, warmed))
     monkeypatch.setattr(fusion.align, "align_region", no_align)
     submaps = load_directory(multi_tile_uploads, TILE)
     fixed = {s.input.id: s.pose_gps for s in submaps}
     keys = sorted({k for s in submaps for k in s.tiles})
     out = fuse_tiles(submaps, keys, tiny_config(), TILE, fixed_poses=fixed)
     assert sorted(out) == keys and all(not free for _, inputs, _ in calls for free, _ in inputs.values())
+    assert warmed and not any(warmed)  # no alignment, no field to start from
 
 
 def test_bad_ply_names_the_file(uploads: Path, tmp_path: Path) -> None:
