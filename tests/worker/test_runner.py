@@ -78,8 +78,13 @@ def test_a_failed_fusion_counts_its_attempt(env: Any, monkeypatch: pytest.Monkey
 def test_the_reconstruction_starts_from_its_tiles_alignment_field(env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     """The reconstruct job is given the field its region's alignment left in the tile (the warm start),
     and that field is part of the job's fingerprint: a new field is a new input."""
+    from fusion.config import FusionConfig
+    from worker import inputs
     from worker.inputs import plan_tile
 
+    # the tiny preset the tests run reconstructs cold; the cpu and paper presets start warm
+    monkeypatch.setattr(inputs, "fusion_config",
+                        lambda settings: FusionConfig.preset(settings.fusion_preset).with_(recon_warm_fraction=1 / 3))
     monkeypatch.setattr(runner, "_align", FakeAlign())
     assert _run(env) is Outcome.succeeded
     with env.db() as db:
