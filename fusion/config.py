@@ -127,6 +127,9 @@ class FusionConfig:
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). New session's
     # pose RMSE, 2x2 bench, 3 sessions, camera seeds 0/1: 60/tile 0.280/0.334 m, 240/tile 0.171/0.243 m (+9 s)
     align_incremental_iterations_per_tile: int = 240
+    # incremental: a new submap's samples track a frozen tile only within this of the held submaps' surface
+    # (at the starting poses: ~2 GPS sigma); elsewhere the frozen field holds no data (0: every sample)
+    align_track_support_m: float = 3.0
     # content-proportional schedule (fusion.schedule): a tile's steps, and its part of a region's alignment
     # steps, scale with the surface it holds (a tile grazed by one submap needs few steps for the same
     # samples per m²); full once the surface, counted in voxels so overlapping sessions count once,

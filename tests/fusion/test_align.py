@@ -106,3 +106,29 @@ def test_reconstruction_starts_from_the_alignment_field() -> None:
     assert not other.metrics["warm_start"]
     off = reconstruct_tile(held, TILES[0], one_step.with_(recon_warm_fraction=0.0), warm=state)
     assert not off.metrics["warm_start"] and off.metrics["iterations"] == 3
+
+
+def test_incremental_tracking_uses_only_samples_near_the_held_map() -> None:
+    """A frozen tile's field says nothing away from the data it was trained on: a new submap's samples
+    track it only within ``align_track_support_m`` of the held submaps' surface."""
+    import torch
+
+    from fusion.align import _held_field
+    from fusion.reconstruct import build_problem
+
+    subs = _scene(offset=(0.0, 0.0, 0.0), yaw_deg=0.0)
+    cfg = _config()
+    state = align_region([subs[0]], TILES, cfg.with_(align_iterations_per_tile=3)).fields[(0, 0)]
+    held = replace(subs[0], free=False)
+
+    def kept(new, support: float) -> float:
+        problem = build_problem([held, new], TILES[0], cfg.with_(align_track_support_m=support), torch.device("cpu"))
+        n_new = int((problem.pool.submap == 1).sum())
+        _held_field(problem, state, cfg.with_(align_track_support_m=support), torch.device("cpu"))
+        return len(problem.pool.points) / n_new
+
+    same = subs[1]  # the same street
+    lifted = replace(subs[1], pose_init=Pose(subs[1].pose_init.t + np.array([0.0, 0.0, 6.5]), subs[1].pose_init.q))
+    assert kept(same, 3.0) > 0.95
+    assert kept(lifted, 3.0) == 0.0  # 3.5 m above the street's highest box: nothing to track
+    assert kept(lifted, 0.0) == 1.0  # the mask off
