@@ -248,11 +248,11 @@ def _held_field(problem: TileProblem, state: dict[str, torch.Tensor], config: Fu
         with torch.no_grad():
             pose = problem.poses()[p.submap].float()
             posed = ((pose[:, :3, :3] @ p.points[:, :, None])[:, :, 0] + pose[:, :3, 3]).cpu().numpy()
-        held = posed[~free.cpu().numpy()]
+        is_free = free.cpu().numpy()
         near = np.zeros(len(posed), bool)
-        if len(held):
-            dist, _ = cKDTree(held).query(posed[free.cpu().numpy()], distance_upper_bound=config.align_track_support_m)
-            near[free.cpu().numpy()] = np.isfinite(dist)
+        if not is_free.all():
+            dist, _ = cKDTree(posed[~is_free]).query(posed[is_free], distance_upper_bound=config.align_track_support_m)
+            near[is_free] = np.isfinite(dist)
         keep &= torch.as_tensor(near, device=dev)
     problem.pool = SurfacePool(p.points[keep], p.normals[keep], p.labels[keep], p.submap[keep], p.conf_target[keep])
     return fld
