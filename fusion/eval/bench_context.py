@@ -48,7 +48,8 @@ def prepare(sim_dir: Path, config: Any, density: float = metrics.DEFAULT_DENSITY
     submaps = load_directory(sim_dir, tile_size)
     truth = load_ground_truth(sim_dir)
     region = region or tile_bounds(TILE[0], TILE[1], tile_size)
-    return BenchContext(config, submaps, truth, sample_truth(truth, region, density), tile_size=tile_size)
+    uploads = {s.input.id: s.input.mesh.vertices for s in submaps}
+    return BenchContext(config, submaps, truth, sample_truth(truth, region, density, uploads), tile_size=tile_size)
 
 
 def concatenated(submaps: Sequence[LoadedSubmap], poses: dict[str, Pose], region: metrics.Region | None,

@@ -239,14 +239,15 @@ def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, confi
 def format_region_table(report: dict[str, Any]) -> str:
     cols = [("geo P", "geo_p", ".3f"), ("geo R", "geo_r", ".3f"), ("geo F", "geo_f", ".3f"), ("sem F", "sem_f", ".3f"),
             ("abs geo F", "abs_geo_f", ".3f"), ("trans m", "pose_trans_m", ".3f"), ("rot deg", "pose_rot_deg", ".3f"),
-            ("transient", "transient_survival", ".1%"), ("seam max", "seam_max_m", ".3f"), ("align s", "align_s", ".0f"),
+            ("transient", "transient_survival", ".1%"), ("contested", "contested_survival", ".1%"), ("seam max", "seam_max_m", ".3f"), ("align s", "align_s", ".0f"),
             ("recon s/t", "recon_s_per_tile", ".0f"), ("wall s", "wall_s", ".0f")]
     width = max(8, *(len(n) + 1 for n in report["rows"]))
     lines = [f"{'row':<{width}}" + "".join(f"{c[0]:>11}" for c in cols)]
     for name, row in report["rows"].items():
         lines.append(f"{name:<{width}}" + "".join(f"{fmt(row.get(k), s):>11}" for _, k, s in cols))
     lines.append("whole core: geo/sem gauge-aligned (rigid Umeyama fit of all submaps' fused poses to the truth); "
-                 "pose RMSE after rigid alignment; seam max: longest stretch of a tile border where one tile's surface meets it and "
+                 "pose RMSE after rigid alignment; transient: surviving share of single-session objects, contested: of "
+                 "their parts another session saw through (the rest no cross-session evidence can remove); seam max: longest stretch of a tile border where one tile's surface meets it and "
                  "the other's does not")
     for name, row in report["rows"].items():
         if row.get("per_class_f"):

@@ -30,7 +30,7 @@ Gauge = tuple[np.ndarray, np.ndarray]  # (R (3, 3), t (3,)): x ↦ R x + t, map 
 ANCHORS_PER_SUBMAP = 64
 D = metrics.DEFAULT_D
 # figures reported twice, gauge-aligned (plain key) and absolute (``abs_`` key)
-ABS_KEYS = ("geo_p", "geo_r", "geo_f", "sem_f", "transient_survival", "per_class_f")
+ABS_KEYS = ("geo_p", "geo_r", "geo_f", "sem_f", "transient_survival", "contested_survival", "per_class_f")
 IDENTITY: Gauge = (np.eye(3), np.zeros(3))
 
 
@@ -38,23 +38,28 @@ IDENTITY: Gauge = (np.eye(3), np.zeros(3))
 class TruthPoints:
     """The ground truth of one region as point sets (map frame, metres), already cropped to ``region``:
     ``gt_all`` every surface, ``gt_observed`` the surface some submap saw (recall is measured on it),
-    ``transient`` the observed parts of transient objects standing clear of the static world."""
+    ``transient`` the observed parts of transient objects standing clear of the static world;
+    ``contested`` those of them another session saw through (``contested_transients``; None: unknown)."""
 
     region: metrics.Region | None  # None: the whole world
     gt_all: metrics.PointSet
     gt_observed: metrics.PointSet
     transient: metrics.PointSet
+    contested: metrics.PointSet | None = None
 
     def cropped(self, region: metrics.Region) -> TruthPoints:
         """The same truth cropped to a sub-``region``."""
         return TruthPoints(region, metrics.crop(self.gt_all, region), metrics.crop(self.gt_observed, region),
-                           metrics.crop(self.transient, region))
+                           metrics.crop(self.transient, region),
+                           None if self.contested is None else metrics.crop(self.contested, region))
 
 
-def sample_truth(truth: Any, region: metrics.Region | None, density: float = metrics.DEFAULT_DENSITY) -> TruthPoints:
+def sample_truth(truth: Any, region: metrics.Region | None, density: float = metrics.DEFAULT_DENSITY,
+                 uploads: dict[str, np.ndarray] | None = None) -> TruthPoints:
     """Sample the simulator's ``truth`` (``GroundTruth``) at ``density`` points per m² (seeds 2, 3, 4 for
     all, observed and transient surfaces) and crop it to ``region``; transient points within 2 d of
-    the static surface are dropped (they cannot be told apart)."""
+    the static surface are dropped (they cannot be told apart). ``uploads`` (submap name → its mesh's
+    local-frame vertices) gives the ``contested`` share of the transients (``contested_transients``)."""
     gt = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=2), region)
     obs = metrics.crop(metrics.sample_surface(truth.vertices, truth.faces, truth.labels, density, seed=3,
                                               face_mask=truth.observed), region)
@@ -63,7 +68,41 @@ def sample_truth(truth: Any, region: metrics.Region | None, density: float = met
     if len(tr) and len(gt):
         dist, _ = cKDTree(gt.points).query(tr.points, distance_upper_bound=2 * D)
         tr = tr.subset(dist > 2 * D)
-    return TruthPoints(region, gt, obs, tr)
+    contested = None
+    if uploads is not None and truth.sessions:
+        contested = tr.subset(contested_transients(truth, tr.points, uploads))
+    return TruthPoints(region, gt, obs, tr, contested)
+
+
+def contested_transients(truth: Any, points: np.ndarray, uploads: dict[str, np.ndarray], cell: float = 0.5,
+                         clearance: float = 0.3) -> np.ndarray:
+    """Mask over transient ``points`` (map frame): another session than the object's owner saw through the
+    point, i.e. uploaded surface (at its true pose) within one ``cell`` horizontally and more than
+    ``clearance`` below it: the road where a parked car stood when the others drove by. Only these can be
+    told from the static world by cross-session evidence; an object where no other session looked cannot."""
+    out = np.zeros(len(points), bool)
+    if not len(points):
+        return out
+    tv, tf = truth.transient_vertices, truth.transient_faces
+    owner = truth.transient_session[cKDTree(tv[tf].mean(axis=1)).query(points)[1]]
+    for k in np.unique(owner):
+        others = [truth.poses[n].apply(np.asarray(v, np.float64)) for n, v in uploads.items()
+                  if truth.sessions.get(n, k) != k]
+        if not others:
+            continue
+        ref = np.concatenate(others)
+        lowest: dict[tuple[int, int], float] = {}
+        cells = np.floor(ref[:, :2] / cell).astype(np.int64)
+        order = np.lexsort((ref[:, 2], cells[:, 1], cells[:, 0]))
+        keys, first = np.unique(cells[order], axis=0, return_index=True)
+        for (cx, cy), z in zip(keys.tolist(), ref[order[first], 2].tolist(), strict=True):
+            lowest[(cx, cy)] = z
+        mine = np.flatnonzero(owner == k)
+        pc = np.floor(points[mine, :2] / cell).astype(np.int64)
+        for n, (cx, cy) in zip(mine.tolist(), pc.tolist(), strict=True):
+            floor = min(lowest.get((cx + dx, cy + dy), np.inf) for dx in (-1, 0, 1) for dy in (-1, 0, 1))
+            out[n] = floor < points[n, 2] - clearance
+    return out
 
 
 def anchors(vertices: np.ndarray, per_submap: int = ANCHORS_PER_SUBMAP) -> np.ndarray:
@@ -115,12 +154,22 @@ def score_mesh(truth: TruthPoints, mesh: FusedMesh, gauge: Gauge | None = None) 
     pred = metrics.crop(pred, truth.region)
     p, r, f = metrics.geometric_prf(pred, truth.gt_all, D, truth.region, truth.gt_observed)
     sem, per_class = metrics.semantic_f1(pred, truth.gt_all, D, truth.region, truth.gt_observed)
-    survive = None
-    if len(truth.transient) and len(pred):
-        dist, _ = cKDTree(pred.points).query(truth.transient.points, distance_upper_bound=D)
-        survive = float(np.mean(dist <= D))
+    survive = _survival(pred, truth.transient)
+    contested = None if truth.contested is None else _survival(pred, truth.contested)
     return {"geo_p": p, "geo_r": r, "geo_f": f, "sem_f": sem, "transient_survival": survive,
+            "contested_survival": contested, "contested_points": None if truth.contested is None else len(truth.contested),
             "per_class_f": {LABELS[k].name: v[2] for k, v in per_class.items()}, "faces": int(len(mesh.faces))}
+
+
+def _survival(pred: metrics.PointSet, transient: metrics.PointSet) -> float | None:
+    """Share of ``transient`` points with a predicted surface point within d (None: no transient points;
+    0 if nothing is predicted)."""
+    if not len(transient):
+        return None
+    if not len(pred):
+        return 0.0
+    dist, _ = cKDTree(pred.points).query(transient.points, distance_upper_bound=D)
+    return float(np.mean(dist <= D))
 
 
 def score_aligned_and_absolute(truth: TruthPoints, mesh: FusedMesh, gauge: Gauge | None,

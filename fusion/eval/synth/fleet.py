@@ -67,6 +67,7 @@ class SubmapRecord:
     odometry_sigma: Sigma
     seen_ground: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     seen_parts: dict[int, np.ndarray] = field(default_factory=dict)
+    session: int = 0  # the session's index in the fleet (the transients' owner tag)
 
     def meta(self) -> dict:
         """The ``meta`` JSON object of API.md."""

@@ -15,7 +15,7 @@ Vehicles upload only the first two; the ground truth is for evaluation.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +46,7 @@ class GroundTruth:
     transient_session: np.ndarray
     poses: dict[str, Pose]  # submap name → true local → map pose
     info: dict
+    sessions: dict[str, int] = field(default_factory=dict)  # submap name → session index (``transient_session``)
 
 
 def _assemble(world: World, records: list[SubmapRecord]) -> tuple[tuple, tuple]:
@@ -120,7 +121,7 @@ def simulate(out_dir: str | Path, seed: int = 0, sessions: int = 5, gps_noise: t
     (sv, sf, sl, so, spart), (tv, tf, tl, to, tsess) = _assemble(world, records)
     _write_gt_ply(gt / "world.ply", sv, sf, sl, so, "part", spart)
     _write_gt_ply(gt / "transients.ply", tv, tf, tl, to, "session", tsess)
-    poses = [{"name": r.name, "session_id": r.session_id, "seq": r.seq, "pose_true": r.pose_true.to_json(),
+    poses = [{"name": r.name, "session_id": r.session_id, "session": r.session, "seq": r.seq, "pose_true": r.pose_true.to_json(),
               "pose_gps": r.pose_gps.to_json(), "odometry": r.odometry.to_json()} for r in records]
     sessions_ids = sorted({r.session_id for r in records})
     (gt / "poses.json").write_text(json.dumps({"submaps": poses, "sessions": sessions_ids}, indent=1))
@@ -136,5 +137,7 @@ def load_ground_truth(out_dir: str | Path) -> GroundTruth:
     gt = Path(out_dir) / "ground_truth"
     v, f, lab, obs, _ = _read_gt_ply(gt / "world.ply", "part")
     tv, tf, tl, to, ts = _read_gt_ply(gt / "transients.ply", "session")
-    poses = {p["name"]: Pose.from_json(p["pose_true"]) for p in json.loads((gt / "poses.json").read_text())["submaps"]}
-    return GroundTruth(v, f, lab, obs, tv, tf, tl, to, ts, poses, json.loads((gt / "world.json").read_text()))
+    records = json.loads((gt / "poses.json").read_text())["submaps"]
+    poses = {p["name"]: Pose.from_json(p["pose_true"]) for p in records}
+    sessions = {p["name"]: int(p["session"]) for p in records if "session" in p}
+    return GroundTruth(v, f, lab, obs, tv, tf, tl, to, ts, poses, json.loads((gt / "world.json").read_text()), sessions)

@@ -209,6 +209,6 @@ def drive(world: World, params: FleetParams, rng: np.random.Generator) -> list[S
                 pose_gps=perturb(poses[a], params.gps_sigma_m, params.gps_sigma_deg, params.gps_z_factor, rng),
                 odometry=odometry, gps_sigma=Sigma(params.gps_sigma_m, params.gps_sigma_deg),
                 odometry_sigma=Sigma(params.odo_trans_per_m * nominal, params.odo_yaw_deg_per_m * nominal),
-                seen_ground=seen_ground, seen_parts=seen_parts,
+                seen_ground=seen_ground, seen_parts=seen_parts, session=k,
             ))
     return records

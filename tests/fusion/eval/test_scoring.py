@@ -73,3 +73,39 @@ def test_aligned_and_absolute_without_gauge_are_the_same_figures() -> None:
     figs = scoring.score_aligned_and_absolute(_truth(_plane(), region), _plane(shift=0.05), None)
     assert figs["abs_geo_f"] == figs["geo_f"] and figs["gauge_m"] == 0.0 and figs["gauge_deg"] == 0.0
     assert set(scoring.ABS_KEYS) <= {k.removeprefix("abs_") for k in figs if k.startswith("abs_")}
+
+
+def test_contested_transients_are_those_another_session_saw_through() -> None:
+    """A car of session 0 stands where session 1 later saw bare road (contested); another stands where only
+    session 0 looked (its own road below does not count). Scored: a mesh keeping the first car survives
+    only on the contested share."""
+    from types import SimpleNamespace
+
+    def box(x: float) -> tuple[np.ndarray, np.ndarray]:  # a 2 m car-sized slab, 0.5-1.5 m above the road
+        v = np.array([[x, 0, 0.5], [x + 2, 0, 0.5], [x + 2, 2, 0.5], [x, 2, 0.5],
+                      [x, 0, 1.5], [x + 2, 0, 1.5], [x + 2, 2, 1.5], [x, 2, 1.5]], float)
+        f = np.array([[0, 1, 2], [0, 2, 3], [4, 6, 5], [4, 7, 6]])
+        return v, f
+
+    (va, fa), (vb, fb) = box(0.0), box(30.0)
+    road = np.array([[x, y, 0.0] for x in np.arange(-2, 5, 0.25) for y in np.arange(-2, 5, 0.25)])
+    own_road = road + [30.0, 0.0, 0.0]
+    truth = SimpleNamespace(
+        transient_vertices=np.concatenate([va, vb]), transient_faces=np.concatenate([fa, fb + 8]),
+        transient_session=np.zeros(8, np.int64),
+        poses={"a0": Pose.identity(), "b0": Pose.identity(), "b1": Pose.identity()},
+        sessions={"a0": 0, "b0": 0, "b1": 1})
+    pts = metrics.sample_surface(truth.transient_vertices, truth.transient_faces, density=20, seed=0).points
+    mask = scoring.contested_transients(truth, pts, {"a0": own_road, "b0": own_road, "b1": road})
+    np.testing.assert_array_equal(mask, pts[:, 0] < 15)  # the first car only, all of it
+    assert mask.any() and not mask.all()
+    assert not scoring.contested_transients(truth, pts, {"a0": own_road, "b0": road}).any()  # its own session only
+
+    region = ((-5.0, -5.0), (40.0, 5.0))
+    tr = metrics.PointSet(pts, np.ones(len(pts), np.int64))
+    first = FusedMesh(va.astype(np.float32), fa.astype(np.int32), np.ones(8, np.uint8), np.ones(8, np.float32),
+                      np.ones(len(fa), np.uint8))
+    figs = scoring.score_mesh(scoring.TruthPoints(region, tr, tr, tr, tr.subset(mask)), first)
+    assert figs["contested_survival"] == pytest.approx(1.0)
+    assert figs["transient_survival"] == pytest.approx(mask.mean(), abs=0.05)
+    assert scoring.score_mesh(scoring.TruthPoints(region, tr, tr, tr), first)["contested_survival"] is None

@@ -61,6 +61,9 @@ def test_uploads_are_valid_and_ground_truth_apart(sim) -> None:
     assert set(np.unique(gt.labels)) | set(np.unique(gt.transient_labels)) == set(range(1, NUM_CLASSES))
     # transient objects exist, each seen by exactly one session
     assert len(gt.transient_faces) > 0 and gt.transient_observed.any()
+    # each submap's session index, the tag its session's transients carry
+    assert set(gt.sessions) == set(gt.poses) and set(gt.sessions.values()) == {0, 1, 2}
+    assert set(np.unique(gt.transient_session)) <= {0, 1, 2}
 
 
 def test_submap_mesh_matches_truth_when_posed(sim) -> None:
