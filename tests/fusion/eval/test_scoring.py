@@ -109,3 +109,24 @@ def test_contested_transients_are_those_another_session_saw_through() -> None:
     assert figs["contested_survival"] == pytest.approx(1.0)
     assert figs["transient_survival"] == pytest.approx(mask.mean(), abs=0.05)
     assert scoring.score_mesh(scoring.TruthPoints(region, tr, tr, tr), first)["contested_survival"] is None
+
+
+def test_pose_figures_split_the_error_by_session_and_measure_the_surface_offset() -> None:
+    """Session b (2 submaps) shifted 0.4 m along x against session a (6): b's RMSE is the larger; exact poses score 0."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(1)
+    subs, true, est = [], {}, {}
+    for k in range(8):
+        sid = "a" if k < 6 else "b"
+        name = f"{sid}{k}"
+        mesh = SimpleNamespace(vertices=rng.uniform(-10, 10, (100, 3)))
+        subs.append(SimpleNamespace(input=SimpleNamespace(id=name, session_id=sid, mesh=mesh)))
+        true[name] = _pose(Rotation.from_euler("z", 0.3 * k).as_matrix(), np.array([20.0 * (k % 4), 15.0 * (k // 4), 0]))
+        est[name] = Pose(true[name].t + (np.array([0.4, 0, 0]) if sid == "b" else 0.0), true[name].q)
+    exact = scoring.pose_figures(subs, true, true)
+    assert exact["pose_trans_m"] == pytest.approx(0, abs=1e-9) and exact["pose_surface_m"] == pytest.approx(0, abs=1e-9)
+    figs = scoring.pose_figures(subs, est, true)
+    assert figs["poses"] == 8 and set(figs["pose_session_m"]) == {"a", "b"}
+    assert figs["pose_session_m"]["b"] > figs["pose_session_m"]["a"]
+    assert 0.1 < figs["pose_surface_m"] < 0.4
