@@ -41,6 +41,7 @@ from fusion.field import SemanticSDFField, field_from_state
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.reconstruct import TileProblem, build_problem, overlapping, set_consensus
+from fusion.register import fine_register
 from fusion.runtime import resolve_device
 from fusion.sampling import SurfacePool, face_geometry, sample_batch
 from fusion.schedule import content_iterations, tile_content
@@ -73,11 +74,12 @@ class _Tile:
 
 
 def align_levels(it: int, iterations: int, config: FusionConfig) -> int:
-    """Progressive LOD for alignment: ``lod_start_levels`` → ``align_max_levels`` over
-    ``align_lod_full_fraction`` of the iterations."""
-    cap = max(config.lod_start_levels, min(config.align_max_levels, config.num_levels))
+    """Progressive LOD for alignment: ``align_lod_start_levels`` (0: ``lod_start_levels``) →
+    ``align_max_levels`` over ``align_lod_full_fraction`` of the iterations."""
+    start = min(config.align_lod_start_levels or config.lod_start_levels, config.num_levels)
+    cap = max(start, min(config.align_max_levels, config.num_levels))
     span = max(1, int(config.align_lod_full_fraction * iterations))
-    return min(cap, config.lod_start_levels + (cap - config.lod_start_levels + 1) * it // span)
+    return min(cap, start + (cap - start + 1) * it // span)
 
 
 def _tile_area(submaps: list[SubmapInput], tile: TileSpec, margin: float) -> float:
@@ -149,7 +151,7 @@ def align_region(
 
 
 def start_poses(submaps: list[SubmapInput], config: FusionConfig, device: str | None = None
-                ) -> tuple[dict[str, Pose], dict[str, dict[str, float]]]:
+                ) -> tuple[dict[str, Pose], dict[str, Any]]:
     """Where the alignment starts, without training: each session's odometry chain on its GPS poses
     (``odom_init``), moved onto the other sessions (``coarse_register``). Map-frame pose per free
     submap, and the coarse registration's per-session figures (the bench's ``init``/``coarse`` rows)."""
@@ -162,7 +164,7 @@ def start_poses(submaps: list[SubmapInput], config: FusionConfig, device: str | 
 
 def _region_poses(
     subs: list[SubmapInput], origin: np.ndarray, config: FusionConfig, dev: torch.device
-) -> tuple[PoseSet, torch.Tensor, dict[str, dict[str, float]]]:
+) -> tuple[PoseSet, torch.Tensor, dict[str, Any]]:
     """The region's poses (region frame: map frame shifted by ``-origin``): each session's odometry
     chain placed on its GPS poses (fixed submaps dominate), then moved rigidly onto the other sessions
     (``fusion.coarse``); the GPS anchors of the prior; the coarse registration's per-session figures."""
@@ -172,10 +174,14 @@ def _region_poses(
     gps = torch.tensor(np.stack([to_region @ (s.pose_gps or s.pose_init).matrix() for s in subs]), device=dev)
     cents = [s.mesh.vertices.mean(0) for s in subs]
     start = odometry_consistent_start(subs, init, cents) if config.odom_init else init
-    coarse: dict[str, dict[str, float]] = {}
+    coarse: dict[str, Any] = {}
     if config.coarse_register:
         registered = coarse_register(subs, start, config, dev)
         start, coarse = registered.poses, registered.metrics
+    if config.fine_register:
+        fine = fine_register(subs, start, gps, config, dev)
+        start = fine.poses
+        coarse = coarse | {"fine": fine.metrics}
     centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(start, cents, strict=True)])
     poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids),
                     torch.tensor([s.free for s in subs])).to(dev)
@@ -306,7 +312,7 @@ def _train(
         terms, _ = field_losses(t.field, batch, config, gen)
         terms |= pose_terms.losses(region, gps)
         loss = total_loss(terms, config)
-        optimiser.step(it, loss)
+        optimiser.step(it, loss, planar=t.field.finest_active_cell_m() > config.align_planar_cell_m > 0)
         report(it, terms, loss)
     return loss_values(terms, loss)
 

@@ -63,12 +63,17 @@ class Optimiser:
         gamma = config.lr_decay_final ** (1.0 / max(iterations, 1))
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
 
-    def step(self, it: int, loss: Tensor) -> None:
+    def step(self, it: int, loss: Tensor, planar: bool = False) -> None:
+        """One step; ``planar``: the poses move only in x, y and yaw (height, roll and pitch held)."""
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if it < self.warmup:
             self.poses.rho.grad = None
             self.poses.phi.grad = None
+        elif planar:
+            for grad, held in ((self.poses.rho.grad, slice(2, 3)), (self.poses.phi.grad, slice(0, 2))):
+                if grad is not None:
+                    grad[:, held] = 0.0
         self.optimizer.step()
         self.scheduler.step()
 

@@ -79,6 +79,13 @@ def test_align_levels_capped() -> None:
     assert max(align_levels(i, 100, cfg) for i in range(100)) == 5
 
 
+def test_the_alignment_can_start_at_finer_levels_than_the_reconstruction() -> None:
+    cfg = tiny_config(num_levels=6, lod_start_levels=2, align_lod_start_levels=4, align_max_levels=6)
+    levels = [align_levels(i, 100, cfg) for i in range(100)]
+    assert levels[0] == 4 and levels[-1] == 6 and levels == sorted(levels)
+    assert align_levels(0, 100, cfg.with_(align_lod_start_levels=0)) == 2  # 0: the reconstruction's start
+
+
 def test_reconstruction_starts_from_the_alignment_field() -> None:
     """A warm start carries the aligned field's surface: one step from it already extracts the street
     (a cold start's single step does not), a layout mismatch falls back to a cold start, and
@@ -132,3 +139,21 @@ def test_incremental_tracking_uses_only_samples_near_the_held_map() -> None:
     assert kept(same, 3.0) > 0.95
     assert kept(lifted, 3.0) == 0.0  # 3.5 m above the street's highest box: nothing to track
     assert kept(lifted, 0.0) == 1.0  # the mask off
+
+
+def test_a_planar_step_moves_poses_only_in_x_y_and_yaw() -> None:
+    import torch
+
+    from fusion.poses import PoseSet
+    from fusion.training import Optimiser
+
+    poses = PoseSet(torch.eye(4, dtype=torch.float64)[None], torch.zeros(1, 3), torch.tensor([True]))
+    opt = Optimiser([], poses, tiny_config(), iterations=10, warmup=0)
+    target = torch.tensor([1.0, 2.0, 3.0, 0.1, 0.2, 0.3], dtype=torch.float64)
+    for it in range(3):
+        opt.step(it, ((torch.cat([poses.rho, poses.phi], dim=1)[0] - target) ** 2).sum(), planar=True)
+    rho, phi = poses.rho.detach()[0], poses.phi.detach()[0]
+    assert rho[0] > 0 and rho[1] > 0 and phi[2] > 0  # pulled toward the target
+    assert rho[2] == 0 and phi[0] == 0 and phi[1] == 0  # height, roll and pitch held
+    opt.step(3, ((torch.cat([poses.rho, poses.phi], dim=1)[0] - target) ** 2).sum())
+    assert poses.rho.detach()[0, 2] > 0 and poses.phi.detach()[0, 0] > 0  # all six move after it
