@@ -30,6 +30,11 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
   before the poses had moved, and the pose optimisation stalled there (bench seed 2, 3 sessions).
   The paper preset starts at 5 of 16 levels, the same ~2.5 m cells on a 128 m tile (DESIGN.md's
   "coarser half", 8 levels, is ~1 m cells there: poses went only from 2.50 m to 1.53 m on a GPU).
+- Before the field alignment, every submap is registered onto the others by a joint robust
+  point-to-plane ICP with the odometry and GPS terms (``fine_register``, ``fusion.register``), and while
+  the field's active cells are coarser than ``align_planar_cell_m`` the alignment moves poses only in
+  x, y and yaw: the coarse levels' pull on height and tilt depends on each submap's coverage, and bent
+  forward-camera sessions apart in height (README, "Camera fleets").
 - The paper preset extracts at 0.2 m (the F-score distance d of the paper's evaluation); 0.1 m made
   the lattice 8x and the mesh 4x larger.
 """

@@ -142,23 +142,37 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
 def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, radius: float, min_dot: float
                      ) -> tuple[np.ndarray, np.ndarray]:
     """(source, target) sample indices: each sample's nearest sample of another submap within ``radius``
-    whose normal agrees with its own (dot ≥ ``min_dot``; none: unmatched). One k-d tree per submap over
-    the others' samples: in a tree of all samples a submap's own, denser nearby, would hide the others'."""
+    whose normal agrees with its own (dot ≥ ``min_dot``; none: unmatched). One k-d tree per submap, each
+    sample queried against the submaps whose boxes (grown by ``radius``) overlap its own: linear in the
+    overlaps, not quadratic in the region's submaps; a single tree over all samples would let a submap's
+    own samples, denser nearby, hide the others'."""
     k = 4
+    ids = np.unique(owner)
+    members = {i: np.flatnonzero(owner == i) for i in ids}
+    trees = {i: cKDTree(posed[m]) for i, m in members.items()}
+    lo = {i: posed[m].min(0) - radius for i, m in members.items()}
+    hi = {i: posed[m].max(0) + radius for i, m in members.items()}
     src, dst = [], []
-    for i in np.unique(owner):
-        mine = np.flatnonzero(owner == i)
-        others = np.flatnonzero(owner != i)
-        if len(others) == 0:
-            continue
-        dist, idx = cKDTree(posed[others]).query(posed[mine], k=k, distance_upper_bound=radius)
-        valid = np.isfinite(dist)
-        idx = others[np.where(valid, idx, 0)]
-        valid &= np.einsum("nkd,nd->nk", normals[idx], normals[mine]) >= min_dot
-        has = valid.any(1)
-        first = np.argmax(valid, axis=1)
+    for i in ids:
+        mine = members[i]
+        best_d = np.full(len(mine), np.inf)
+        best_j = np.full(len(mine), -1)
+        for j in ids:
+            if j == i or np.any(lo[j] > hi[i]) or np.any(hi[j] < lo[i]):
+                continue
+            dist, idx = trees[j].query(posed[mine], k=k, distance_upper_bound=radius)
+            valid = np.isfinite(dist)
+            cand = members[j][np.where(valid, idx, 0)]
+            valid &= np.einsum("nkd,nd->nk", normals[cand], normals[mine]) >= min_dot
+            d = np.where(valid, dist, np.inf)
+            first = np.argmin(d, axis=1)
+            d_first = d[np.arange(len(mine)), first]
+            better = d_first < best_d
+            best_d[better] = d_first[better]
+            best_j[better] = cand[better, first[better]]
+        has = best_j >= 0
         src.append(mine[has])
-        dst.append(idx[has, first[has]])
+        dst.append(best_j[has])
     if not src:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(src), np.concatenate(dst)

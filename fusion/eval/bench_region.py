@@ -300,6 +300,8 @@ ROWS = ("gps", "init", "coarse", "concat", "concat_gps", "fused", "add_session",
 # against the default config (on → off, or off → on for a candidate not yet the default), on the same data
 COMPONENTS: tuple[str, ...] = (
     "coarse_register=false",  # coarse session registration (fusion.coarse)
+    "fine_register=false",  # joint point-to-plane registration of every submap (fusion.register)
+    "align_planar_cell_m=0",  # poses move in 6 DoF from the coarsest level (not only x, y, yaw there)
     "odom_init=false",  # start from each session's odometry chain fitted to its GPS fixes
     "sdf_robust_m=0.1",  # robust (Huber) SDF data term (fusion.losses.robust_square)
     "consensus=false",  # cross-session consensus confidence targets
