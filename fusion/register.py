@@ -33,6 +33,7 @@ or GPU), SciPy k-d trees for the correspondences; no Open3D.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -178,13 +179,13 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
     return np.concatenate(src), np.concatenate(dst)
 
 
-def _minimise(poses: PoseSet, objective: object, steps: int) -> None:
+def _minimise(poses: PoseSet, objective: Callable[[], torch.Tensor], steps: int) -> None:
     """L-BFGS (strong Wolfe line search) on the pose corrections for ``steps`` iterations."""
     opt = torch.optim.LBFGS([poses.rho, poses.phi], lr=1.0, max_iter=steps, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
-        loss = objective()  # type: ignore[operator]
+        loss = objective()
         loss.backward()
         return loss
 
