@@ -74,12 +74,11 @@ class _Tile:
 
 
 def align_levels(it: int, iterations: int, config: FusionConfig) -> int:
-    """Progressive LOD for alignment: ``align_lod_start_levels`` (0: ``lod_start_levels``) →
-    ``align_max_levels`` over ``align_lod_full_fraction`` of the iterations."""
-    start = min(config.align_lod_start_levels or config.lod_start_levels, config.num_levels)
-    cap = max(start, min(config.align_max_levels, config.num_levels))
+    """Progressive LOD for alignment: ``lod_start_levels`` → ``align_max_levels`` over
+    ``align_lod_full_fraction`` of the iterations."""
+    cap = max(config.lod_start_levels, min(config.align_max_levels, config.num_levels))
     span = max(1, int(config.align_lod_full_fraction * iterations))
-    return min(cap, start + (cap - start + 1) * it // span)
+    return min(cap, config.lod_start_levels + (cap - config.lod_start_levels + 1) * it // span)
 
 
 def _tile_area(submaps: list[SubmapInput], tile: TileSpec, margin: float) -> float:

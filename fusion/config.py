@@ -130,7 +130,6 @@ class FusionConfig:
     # 0.085 m / 0.16° (the old joint per-tile fusion: 0.086 m / 0.17°) with every level and 300 steps:
     # the last ~0.2 m come from the finest levels, so the alignment runs the reconstruction's schedule.
     align_iterations_per_tile: int = 300  # alignment steps = this × the region's content in full tiles (below)
-    align_lod_start_levels: int = 0  # the alignment's first active levels (0: lod_start_levels, below)
     # while the finest active level's cells are coarser than this, the alignment moves poses only in x, y and
     # yaw (0: never). The coarse levels smooth road, kerb and walls into one blob: their pull on height and
     # tilt depends on what each submap saw, and on forward-camera submaps (strips of road ahead, facades seen

@@ -115,12 +115,16 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
         n_pair = torch.tensor(mean_n, device=dev)
         sigma = radius / 2
 
-        def objective(s_idx: torch.Tensor = s_idx, d_idx: torch.Tensor = d_idx, n_pair: torch.Tensor = n_pair,
-                      w: torch.Tensor = w, sigma: float = sigma) -> torch.Tensor:
-            t = poses()
+        def residual(t: torch.Tensor, s_idx: torch.Tensor = s_idx, d_idx: torch.Tensor = d_idx,
+                     n_pair: torch.Tensor = n_pair) -> torch.Tensor:
+            """Point-to-plane residual (m) of every match at poses ``t``."""
             a = transform(t, own_t[s_idx], pts_t[s_idx])
-            b = transform(t, own_t[d_idx], pts_t[d_idx])
-            r = ((a - b) * n_pair).sum(-1) / sigma
+            return ((a - transform(t, own_t[d_idx], pts_t[d_idx])) * n_pair).sum(-1)
+
+        def objective(residual: Callable[[torch.Tensor], torch.Tensor] = residual, w: torch.Tensor = w,
+                      sigma: float = sigma) -> torch.Tensor:
+            t = poses()
+            r = residual(t) / sigma
             data = (w * torch.log1p(r * r)).sum()
             odo = odometry_loss(t, terms.pairs, terms.odom_rel, terms.odom_ist, terms.odom_isr) * n_pairs
             prior = gps_prior_loss(t, gps, terms.gps_ist, terms.gps_isr) * n_subs
@@ -128,8 +132,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
 
         _minimise(poses, objective, config.fine_steps)
         with torch.no_grad():
-            t = poses()
-            res = ((transform(t, own_t[s_idx], pts_t[s_idx]) - transform(t, own_t[d_idx], pts_t[d_idx])) * n_pair).sum(-1)
+            res = residual(poses())
         rounds.append({"radius_m": float(radius), "matches": int(len(src)),
                        "median_residual_m": float(res.abs().median())})
     with torch.no_grad():

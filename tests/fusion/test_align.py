@@ -79,13 +79,6 @@ def test_align_levels_capped() -> None:
     assert max(align_levels(i, 100, cfg) for i in range(100)) == 5
 
 
-def test_the_alignment_can_start_at_finer_levels_than_the_reconstruction() -> None:
-    cfg = tiny_config(num_levels=6, lod_start_levels=2, align_lod_start_levels=4, align_max_levels=6)
-    levels = [align_levels(i, 100, cfg) for i in range(100)]
-    assert levels[0] == 4 and levels[-1] == 6 and levels == sorted(levels)
-    assert align_levels(0, 100, cfg.with_(align_lod_start_levels=0)) == 2  # 0: the reconstruction's start
-
-
 def test_reconstruction_starts_from_the_alignment_field() -> None:
     """A warm start carries the aligned field's surface: one step from it already extracts the street
     (a cold start's single step does not), a layout mismatch falls back to a cold start, and
