@@ -152,8 +152,9 @@ def align_region(
 def start_poses(submaps: list[SubmapInput], config: FusionConfig, device: str | None = None
                 ) -> tuple[dict[str, Pose], dict[str, Any]]:
     """Where the alignment starts, without training: each session's odometry chain on its GPS poses
-    (``odom_init``), moved onto the other sessions (``coarse_register``). Map-frame pose per free
-    submap, and the coarse registration's per-session figures (the bench's ``init``/``coarse`` rows)."""
+    (``odom_init``), moved onto the other sessions (``coarse_register``), every submap registered onto the
+    others (``fine_register``). Map-frame pose per free submap, and the coarse registration's per-session
+    figures plus, under ``"fine"``, the fine registration's rounds (the bench's ``init``/``coarse`` rows)."""
     subs = sorted(submaps, key=lambda s: s.id)
     cents = np.stack([s.pose_init.apply(s.mesh.vertices.mean(0)[None])[0] for s in subs])
     origin = np.array([*np.floor(cents[:, :2].min(0)), 0.0])
@@ -166,7 +167,8 @@ def _region_poses(
 ) -> tuple[PoseSet, torch.Tensor, dict[str, Any]]:
     """The region's poses (region frame: map frame shifted by ``-origin``): each session's odometry
     chain placed on its GPS poses (fixed submaps dominate), then moved rigidly onto the other sessions
-    (``fusion.coarse``); the GPS anchors of the prior; the coarse registration's per-session figures."""
+    (``fusion.coarse``), then every submap registered onto the others (``fusion.register``); the GPS anchors
+    of the prior; the coarse registration's per-session figures (+ ``"fine"``: the fine registration's)."""
     to_region = np.eye(4)
     to_region[:3, 3] = -origin
     init = [to_region @ s.pose_init.matrix() for s in subs]
