@@ -43,7 +43,7 @@ import os
 import sys
 import time
 import uuid
-from collections import Counter
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -199,7 +199,8 @@ async def upload_phase(
                 if time.monotonic() >= deadline:
                     return
                 headers = {"Authorization": f"Bearer {tokens[item.agent_id]}"}
-                files = {"meta": (None, item.meta, "application/json"), "mesh": ("submap.ply", item.mesh)}
+                files: dict[str, tuple[str | None, bytes | str] | tuple[str | None, bytes | str, str]] = {
+                    "meta": (None, item.meta, "application/json"), "mesh": ("submap.ply", item.mesh)}
                 start = time.perf_counter()
                 try:
                     response = await client.post("/v1/submaps", files=files, headers=headers)
@@ -326,7 +327,7 @@ def report_workers(ports: list[int]) -> None:
             print(f"worker {k} metrics: unreachable ({exc})", flush=True)
             continue
         jobs: Counter[str] = Counter()
-        sums: Counter[str] = Counter()
+        sums: dict[str, float] = defaultdict(float)
         for family in text_string_to_metric_families(text):
             for sample in family.samples:
                 if sample.name == "fleetmap_worker_job_duration_seconds_count":
