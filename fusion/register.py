@@ -10,12 +10,16 @@ field of view, same fleet and noise, it reached 0.29 m. A point-to-plane registr
 surface sample onto the nearest compatible surface of another submap directly, whatever the field has
 learned, so it does not depend on the field first merging two surfaces into one.
 
-What: every free submap one rigid pose (the centroid-relative ``PoseSet`` of the field alignment). Surface
+What: every free submap one rigid pose (the centroid-relative ``PoseSet`` of the field alignment), composed
+with one rigid correction per session (about its centroid): odometry holds a session's submaps together
+within cm, so a whole session moves along a badly conditioned direction of the submap corrections alone
+(L-BFGS left a session shifted 1 m where it was); its own variable moves it freely. Surface
 samples per submap (area-weighted, vertical faces ``fine_vertical_weight`` × more likely: they fix the
-horizontal position, the road only height and tilt). Rounds of
+horizontal position, the road only height and tilt; spread over the directions the vertical faces face,
+``fine_normal_balance``, so the few surfaces facing along a street hold a share of the data term). Rounds of
 
-1. correspondences: each sample's nearest sample of *another* submap within the round's radius whose
-   normal agrees (``fine_normal_dot``); the radius shrinks geometrically from ``fine_max_dist_m`` to
+1. correspondences: each sample's nearest sample of a submap of *another session* within the round's
+   radius whose normal agrees (``fine_normal_dot``); the radius shrinks geometrically from ``fine_max_dist_m`` to
    ``fine_min_dist_m`` over the rounds;
 2. L-BFGS on  Σ_submaps ``fine_weight`` · mean ρ(r / σ)  +  odometry  +  GPS prior,  with r the
    point-to-plane residual along the pair's mean normal, σ half the round's radius and ρ(u) = log(1 + u²)
@@ -59,12 +63,34 @@ class FineResult:
     metrics: dict[str, object] = field(default_factory=dict)
 
 
-def surface_samples(sm: SubmapInput, count: int, vertical_weight: float, rng: np.random.Generator
-                    ) -> tuple[np.ndarray, np.ndarray]:
+AZIMUTH_BINS = 6  # non-ground normals binned by horizontal direction, modulo 180° (30° bins)
+AZIMUTH_MAX_GAIN = 8.0  # a rare direction's faces are drawn at most this × more often than their area says
+
+
+def surface_samples(sm: SubmapInput, count: int, vertical_weight: float, rng: np.random.Generator,
+                    normal_balance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``count`` points (local frame) and their face normals on ``sm``'s mesh, drawn by face area, faces
-    that are not ground-like ``vertical_weight`` × more likely."""
+    that are not ground-like ``vertical_weight`` × more likely.
+
+    ``normal_balance`` (0: off, 1: full) spreads the non-ground samples over the horizontal directions
+    their normals face (normal-space sampling, Rusinkiewicz & Levoy 2001): a face's weight is multiplied by
+    (mean direction-bin area / its bin's area) ** ``normal_balance``, at most ``AZIMUTH_MAX_GAIN``, and the
+    non-ground total is kept. Along a street the facades, kerbs and fences face across the road and
+    point-to-plane matches on them leave the direction of travel open; what fixes it (pole sides, sign
+    plates, building corners, cross streets) is a few % of the area, so without this it held a few % of
+    each submap's data term."""
     area, normal = face_geometry(sm.mesh.vertices, sm.mesh.faces)
-    weight = area * np.where(np.abs(normal[:, 2]) >= UPRIGHT_NZ, 1.0, vertical_weight)
+    upright = np.abs(normal[:, 2]) >= UPRIGHT_NZ
+    weight = area * np.where(upright, 1.0, vertical_weight)
+    side = ~upright & (area > 0)
+    if normal_balance > 0 and side.any():
+        azimuth = np.mod(np.arctan2(normal[side, 1], normal[side, 0]), np.pi)
+        bins = np.minimum((azimuth / np.pi * AZIMUTH_BINS).astype(int), AZIMUTH_BINS - 1)
+        bin_area = np.bincount(bins, weights=area[side], minlength=AZIMUTH_BINS)
+        mean = bin_area[bin_area > 0].mean()
+        gain = np.minimum((mean / bin_area[bins]) ** normal_balance, AZIMUTH_MAX_GAIN)
+        balanced = weight[side] * gain
+        weight[side] = balanced * (weight[side].sum() / balanced.sum())
     if weight.sum() <= 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
     face = rng.choice(len(area), size=count, p=weight / weight.sum())
@@ -81,7 +107,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     rng = np.random.default_rng(config.seed)
     local, normals, owner = [], [], []
     for k, sm in enumerate(subs):
-        p, n = surface_samples(sm, config.fine_samples, config.fine_vertical_weight, rng)
+        p, n = surface_samples(sm, config.fine_samples, config.fine_vertical_weight, rng, config.fine_normal_balance)
         local.append(p)
         normals.append(n)
         owner.append(np.full(len(p), k))
@@ -89,6 +115,25 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     cents = [s.mesh.vertices.mean(0) for s in subs]
     centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(start, cents, strict=True)])
     poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids), torch.tensor([s.free for s in subs])).to(dev)
+    # one more rigid correction per session (about its centroid), composed with the submaps': a session's
+    # odometry is stiff (σ of cm between neighbours), so moving a whole session through the submap
+    # corrections alone is a badly conditioned direction: L-BFGS left a session shifted 1 m off the others
+    # where it was (3x3 bench, seed 0, exact). Its own variable moves it freely; odometry never feels it
+    label = {sid: k for k, sid in enumerate(sorted({s.session_id for s in subs}))}
+    of = np.array([label[s.session_id] for s in subs])
+    rigid = [of == k for k in range(len(label))]
+    whole = PoseSet(torch.eye(4, dtype=torch.float64).repeat(len(label), 1, 1),
+                    torch.tensor(np.stack([centroids[m].mean(0) for m in rigid])),
+                    torch.tensor([all(s.free for s, inside in zip(subs, m, strict=True) if inside) for m in rigid])).to(dev)
+    of_t = torch.tensor(of, device=dev)
+    # samples match only other sessions' unless fine_same_session: a session's consecutive submaps overlap
+    # and agree wherever the session is, so their samples were often the nearest and diluted the matches
+    # that move it; within a session odometry rules
+    group = np.arange(len(subs)) if config.fine_same_session else of
+
+    def posed_now() -> torch.Tensor:
+        return whole()[of_t] @ poses()
+
     if len(pts) == 0 or not any(s.free for s in subs) or config.fine_rounds <= 0:
         return FineResult([m.copy() for m in start], {"rounds": []})
     terms = PoseTerms.of(subs, dev)
@@ -100,10 +145,10 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     rounds = []
     for radius in radii:
         with torch.no_grad():
-            current = poses()
+            current = posed_now()
             posed = transform(current, own_t, pts_t).cpu().numpy()
             posed_n = (current[own_t][:, :3, :3] @ nrm_t[:, :, None])[:, :, 0].cpu().numpy()
-        src, dst = _correspondences(posed, posed_n, own, float(radius), config.fine_normal_dot)
+        src, dst = _correspondences(posed, posed_n, own, float(radius), config.fine_normal_dot, group)
         if len(src) == 0:
             rounds.append({"radius_m": float(radius), "matches": 0})
             continue
@@ -123,30 +168,31 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
 
         def objective(residual: Callable[[torch.Tensor], torch.Tensor] = residual, w: torch.Tensor = w,
                       sigma: float = sigma) -> torch.Tensor:
-            t = poses()
+            t = posed_now()
             r = residual(t) / sigma
             data = (w * torch.log1p(r * r)).sum()
             odo = odometry_loss(t, terms.pairs, terms.odom_rel, terms.odom_ist, terms.odom_isr) * n_pairs
             prior = gps_prior_loss(t, gps, terms.gps_ist, terms.gps_isr) * n_subs
             return data + odo + prior
 
-        _minimise(poses, objective, config.fine_steps)
+        _minimise([poses.rho, poses.phi, whole.rho, whole.phi], objective, config.fine_steps)
         with torch.no_grad():
-            res = residual(poses())
+            res = residual(posed_now())
         rounds.append({"radius_m": float(radius), "matches": int(len(src)),
                        "median_residual_m": float(res.abs().median())})
     with torch.no_grad():
-        final = poses().cpu().numpy()
+        final = posed_now().cpu().numpy()
     moved = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(final, cents, strict=True)]) - centroids
     free = np.array([s.free for s in subs])
     rms = float(np.sqrt((moved[free] ** 2).sum(1).mean())) if free.any() else 0.0
     return FineResult(list(final), {"rounds": rounds, "moved_rms_m": rms})
 
 
-def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, radius: float, min_dot: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, radius: float, min_dot: float,
+                     group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(source, target) sample indices: each sample's nearest sample of another submap within ``radius``
-    whose normal agrees with its own (dot ≥ ``min_dot``; none: unmatched). One k-d tree per submap, each
+    whose normal agrees with its own (dot ≥ ``min_dot``; none: unmatched), never of a submap in the same
+    ``group`` (per submap index; default: each its own, i.e. only the own submap). One k-d tree per submap, each
     sample queried against the submaps whose boxes (grown by ``radius``) overlap its own: linear in the
     overlaps, not quadratic in the region's submaps; a single tree over all samples would let a submap's
     own samples, denser nearby, hide the others'."""
@@ -162,7 +208,7 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
         best_d = np.full(len(mine), np.inf)
         best_j = np.full(len(mine), -1)
         for j in ids:
-            if j == i or np.any(lo[j] > hi[i]) or np.any(hi[j] < lo[i]):
+            if j == i or (group is not None and group[j] == group[i]) or np.any(lo[j] > hi[i]) or np.any(hi[j] < lo[i]):
                 continue
             dist, idx = trees[j].query(posed[mine], k=k, distance_upper_bound=radius)
             valid = np.isfinite(dist)
@@ -182,9 +228,9 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
     return np.concatenate(src), np.concatenate(dst)
 
 
-def _minimise(poses: PoseSet, objective: Callable[[], torch.Tensor], steps: int) -> None:
-    """L-BFGS (strong Wolfe line search) on the pose corrections for ``steps`` iterations."""
-    opt = torch.optim.LBFGS([poses.rho, poses.phi], lr=1.0, max_iter=steps, line_search_fn="strong_wolfe")
+def _minimise(params: list[torch.nn.Parameter], objective: Callable[[], torch.Tensor], steps: int) -> None:
+    """L-BFGS (strong Wolfe line search) on the pose corrections ``params`` for ``steps`` iterations."""
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=steps, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         opt.zero_grad()

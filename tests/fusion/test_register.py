@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.register import _correspondences, fine_register
-from fusion.types import Pose, Sigma, SubmapInput
+from fusion.register import _correspondences, fine_register, surface_samples
+from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
 
@@ -85,3 +85,44 @@ def test_the_alignment_start_runs_it_after_the_coarse_stage_and_the_switch_turns
     assert "fine" in metrics and t < 0.05
     off, metrics = start_poses(subs, cfg.with_(fine_register=False))
     assert "fine" not in metrics and np.allclose(off["b"].t, wrong.t)
+
+
+def _corridor() -> SubmapInput:
+    """A 40 m street along x: ground, two long walls facing across it (±y) and one post whose sides face
+    along it (±x): what fixes the submap along the street is ~1 % of the vertical area."""
+    import trimesh
+
+    parts = [trimesh.creation.box(extents=(40.0, 8.0, 0.1)).apply_translation((20.0, 0.0, -0.05))]
+    for y in (-4.0, 4.0):
+        parts.append(trimesh.creation.box(extents=(40.0, 0.2, 3.0)).apply_translation((20.0, y, 1.5)))
+    parts.append(trimesh.creation.box(extents=(0.3, 0.3, 3.0)).apply_translation((20.0, 2.0, 1.5)))
+    mesh = trimesh.util.concatenate(parts)
+    sm = SemanticMesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64),
+                      np.ones(len(mesh.faces), np.int64))
+    return SubmapInput("c", "sc", 0, sm, Pose.identity(), Pose.identity(), Sigma(2.0, 2.0))
+
+
+def test_normal_balance_spreads_vertical_samples_over_the_directions_they_face() -> None:
+    sm = _corridor()
+    shares = {}
+    for balance in (0.0, 1.0):
+        _, n = surface_samples(sm, 20_000, 4.0, np.random.default_rng(0), balance)
+        vertical = np.abs(n[:, 2]) < 0.7
+        along = np.abs(n[:, 0]) > 0.9  # the post's sides and the walls' ends: faces that fix x
+        shares[balance] = (along.mean(), vertical.mean())
+    (along_0, vertical_0), (along_1, vertical_1) = shares[0.0], shares[1.0]
+    assert along_0 < 0.01 and along_1 > 8 * along_0, shares  # gain capped at AZIMUTH_MAX_GAIN (8×)
+    assert abs(vertical_1 - vertical_0) < 0.02, shares  # ground vs vertical split unchanged
+
+
+def test_a_whole_session_off_by_a_metre_is_moved_onto_the_other_not_held_by_its_own_submaps() -> None:
+    # session b: three overlapping submaps on one odometry chain, all shifted 1 m; session a at the truth
+    wrong = Pose(np.array([0.8, -0.6, 0.0]), rot_z(0.0))
+    sigma = Sigma(2.0, 2.0)
+    subs = [SubmapInput("a", "sa", 0, _block(), Pose.identity(), Pose.identity(), sigma, pose_gps=Pose.identity())]
+    subs += [SubmapInput(f"b{k}", "sb", k, _block(extra_box=True), wrong, Pose.identity(), sigma,
+                         pose_gps=Pose.identity()) for k in range(3)]
+    res = _run(subs)
+    for k in (1, 2, 3):
+        t, deg = _relative([res.poses[0], res.poses[k]])
+        assert t < 0.05 and deg < 0.2, (k, t, deg)
