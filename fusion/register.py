@@ -115,10 +115,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     cents = [s.mesh.vertices.mean(0) for s in subs]
     centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(start, cents, strict=True)])
     poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids), torch.tensor([s.free for s in subs])).to(dev)
-    # one more rigid correction per session (about its centroid), composed with the submaps': a session's
-    # odometry is stiff (σ of cm between neighbours), so moving a whole session through the submap
-    # corrections alone is a badly conditioned direction: L-BFGS left a session shifted 1 m off the others
-    # where it was (3x3 bench, seed 0, exact). Its own variable moves it freely; odometry never feels it
+    # one more rigid correction per session, about its centroid (why: the module docstring, "What")
     label = {sid: k for k, sid in enumerate(sorted({s.session_id for s in subs}))}
     of = np.array([label[s.session_id] for s in subs])
     rigid = [of == k for k in range(len(label))]
