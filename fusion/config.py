@@ -15,7 +15,9 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
 - Confidence targets of surface samples are the cross-session consensus (of the sessions with
   evidence about a point, the fraction that saw a surface there; a session has evidence when it saw
   through the point: bare ground below it) instead of a constant 1, so objects seen by one session of
-  many fall below ``c_th`` independent of the grid resolution (``consensus_*``).
+  many fall below ``c_th`` independent of the grid resolution (``consensus_*``). Surfaces of movable
+  classes (vehicles, obstacles) need a second session's witness as well (``consensus_movable*``): no
+  free-space evidence exists where one session drove alone.
 - A tile's reconstruction starts from its region alignment's field (``recon_warm_fraction`` of the
   steps, every level at once) rather than from scratch: the alignment already trained it on the
   same data at nearly the final poses.
@@ -44,6 +46,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
+
+from fusion.labels import LABEL_BY_NAME
 
 GRID_TYPES = ("hash", "dense", "octree")
 CONSENSUS_EVIDENCE = ("free_space", "cover")
@@ -196,6 +200,11 @@ class FusionConfig:
     consensus_keep: float = 0.55
     # consensus off (2026-12-02, same bench, seeds 0/1/2): geo F 0.852/0.774/0.745 -> 0.922/0.806/0.755, transient
     # 2.5/22.2/27.8 % -> 6.2/20.9/36.2 %; the exact fleet not measured without it yet (README, ablation)
+    # movable classes need a second witness (``fusion.sampling.consensus_targets``): kept only where at least
+    # this many sessions saw them, once the tile holds that many sessions (0 or 1: off). Free-space evidence
+    # cannot drop a car parked where one session drove: no other session saw through it (README, "Camera fleets")
+    consensus_movable_sessions: int = 2
+    consensus_movable: tuple[str, ...] = ("vehicle", "obstacle")
     consensus_at: tuple[float, ...] = (0.4, 0.7)  # fractions of training at which targets are recomputed
     pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
     class_balance: float = 0.5  # pool faces weighted by area × (mean class share / class share)^this
@@ -224,8 +233,15 @@ class FusionConfig:
             raise ValueError(f"grid_type must be one of {GRID_TYPES}, got {self.grid_type!r}")
         if self.consensus_evidence not in CONSENSUS_EVIDENCE:
             raise ValueError(f"consensus_evidence must be one of {CONSENSUS_EVIDENCE}, got {self.consensus_evidence!r}")
+        unknown = [name for name in self.consensus_movable if name not in LABEL_BY_NAME]
+        if unknown:
+            raise ValueError(f"consensus_movable names unknown labels: {', '.join(unknown)}")
         if self.lod_start_levels > self.num_levels:
             raise ValueError("lod_start_levels must not exceed num_levels")
+
+    def movable_label_ids(self) -> list[int]:
+        """Label ids of ``consensus_movable``."""
+        return [LABEL_BY_NAME[name].id for name in self.consensus_movable]
 
     @staticmethod
     def preset(name: str = "cpu") -> FusionConfig:
@@ -299,6 +315,8 @@ class FusionConfig:
                     changes[key] = text.lower() in ("true", "1")
                 elif kind in ("int", "float", "str"):
                     changes[key] = {"int": int, "float": float, "str": str}[kind](text)
+                elif kind == "tuple[str, ...]":
+                    changes[key] = tuple(v.strip() for v in text.split(",") if v.strip())
                 else:  # tuple[float, ...]
                     changes[key] = tuple(float(v) for v in text.split(",") if v.strip())
             except ValueError:

@@ -140,9 +140,12 @@ def set_consensus(problem: TileProblem, poses_tile: torch.Tensor, config: Fusion
     points = (pose[:, :3, :3] @ pool.points[:, :, None])[:, :, 0] + pose[:, :3, 3]
     normals = (pose[:, :3, :3] @ pool.normals[:, :, None])[:, :, 0] if config.consensus_evidence == "free_space" else None
     session = torch.as_tensor(problem.pool_session, device=points.device)
+    movable = torch.isin(pool.labels, torch.tensor(config.movable_label_ids(), dtype=pool.labels.dtype,
+                                                   device=pool.labels.device))
     pool.conf_target = consensus_targets(points, session, config.consensus_radius_m, config.consensus_cover_m,
                                          keep_fraction=config.consensus_keep, c_th=config.c_th, normals=normals,
-                                         column_m=config.consensus_column_m)
+                                         column_m=config.consensus_column_m, movable=movable,
+                                         movable_sessions=config.consensus_movable_sessions)
 
 
 def active_levels(it: int, config: FusionConfig) -> int:

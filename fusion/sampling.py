@@ -223,7 +223,7 @@ def calibrated_confidence(fraction: Tensor, keep_fraction: float, c_th: float) -
 def consensus_targets(
     pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27,
     keep_fraction: float | None = None, c_th: float = 0.7, normals: Tensor | None = None,
-    column_m: float = 3.0,
+    column_m: float = 3.0, movable: Tensor | None = None, movable_sessions: int = 0,
 ) -> Tensor:
     """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
     with evidence about this surface that saw it (had a point within ~``near_m``).
@@ -239,6 +239,12 @@ def consensus_targets(
     session saw stands where the others saw bare road: dropped. The upper wall a session did not see
     stands above its lower wall (not upward-facing): no evidence, kept. A session that saw nothing there
     (another street, a hole) has no say either way.
+
+    ``movable`` (P,) bool marks points of movable classes (vehicles, obstacles): where the pool holds at
+    least ``movable_sessions`` sessions, such a point that fewer than ``movable_sessions`` of them saw
+    gets 0, evidence or not. A car parked on a street that only one session drove has no session that saw
+    through it, so the free-space rule keeps it; this rule asks a movable object for a second witness.
+    A static car two sessions passed stays; with fewer sessions in the tile than that, nothing is asked.
 
     "Within r" is decided on occupancy grids (cells of r/2, r/4 for the cover), dilated by r with
     shifted ORs along each axis: a cube of half-width r up to one cell, not a ball. That is O(P + cells) per
@@ -258,6 +264,8 @@ def consensus_targets(
         near += hit_n
         against += hit_e & ~hit_n
     fraction = (near / (near + against).clamp(min=1)).float()
+    if movable is not None and 1 < movable_sessions <= len(near_hit):
+        fraction = torch.where(movable & (near < movable_sessions), torch.zeros_like(fraction), fraction)
     return fraction if keep_fraction is None else calibrated_confidence(fraction, keep_fraction, c_th)
 
 

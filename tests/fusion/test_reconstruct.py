@@ -81,9 +81,13 @@ def test_config_round_trip_and_presets() -> None:
 
 def test_config_overrides_parse_each_fields_type() -> None:
     cfg = FusionConfig().with_overrides(["extract_support_m=0", "iterations=12", "consensus=false",
-                                         "face_labels=vertices", "consensus_at=0.3,0.6"])
+                                         "face_labels=vertices", "consensus_at=0.3,0.6",
+                                         "consensus_movable=vehicle, pole"])
     assert (cfg.extract_support_m, cfg.iterations, cfg.consensus) == (0.0, 12, False)
     assert cfg.face_labels == "vertices" and cfg.consensus_at == (0.3, 0.6)
+    assert cfg.consensus_movable == ("vehicle", "pole") and cfg.movable_label_ids() == [10, 7]
+    with pytest.raises(ValueError, match="unknown labels: car"):
+        FusionConfig().with_overrides(["consensus_movable=car"])
     for bad in (["nope=1"], ["iterations=1.5"], ["consensus=maybe"], ["iterations"]):
         with pytest.raises(ValueError, match="--set"):
             FusionConfig().with_overrides(bad)

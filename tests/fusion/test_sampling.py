@@ -84,6 +84,45 @@ def test_free_space_evidence_counts_only_the_sessions_that_saw_through_a_surface
     assert consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=0.1).min() == 1.0
 
 
+def test_a_movable_object_needs_a_second_witness_where_no_session_saw_through_it() -> None:
+    """Three sessions; two drove street A, one drove street B alone and saw a parked car there. Nobody saw
+    through that car (free-space evidence keeps it at 1); as a movable class it has one witness: 0. The car
+    both street-A sessions saw, and street B's road and wall, stay at 1. With one session in the pool, or
+    the rule off (``movable_sessions`` 1), the lone car keeps its 1."""
+    rng = np.random.default_rng(5)
+    pts, nrm, sess, mov = [], [], [], []
+
+    def add(p: np.ndarray, n: tuple[float, float, float], s: int, movable: bool = False) -> None:
+        pts.append(p)
+        nrm.append(np.tile(n, (len(p), 1)))
+        sess.append(np.full(len(p), s))
+        mov.append(np.full(len(p), movable))
+
+    for s in (0, 1):  # street A, y 0..8, with a car both saw
+        add(_plane(rng, (0, 40), (0, 8), 0.0, 3000), (0, 0, 1), s)
+        add(_plane(rng, (10, 14), (2, 4), 1.6, 300), (0, 0, 1), s, movable=True)
+    add(_plane(rng, (0, 40), (30, 38), 0.0, 3000), (0, 0, 1), 2)  # street B, session 2 alone
+    add(_plane(rng, (20, 24), (32, 34), 1.6, 300), (0, 0, 1), 2, movable=True)
+    add(np.column_stack([rng.uniform(0, 40, 1000), np.full(1000, 38.0), rng.uniform(0, 4, 1000)]), (0, -1, 0), 2)
+    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
+    n = torch.tensor(np.concatenate(nrm), dtype=torch.float32)
+    s = torch.tensor(np.concatenate(sess))
+    m = torch.tensor(np.concatenate(mov))
+    lone = torch.zeros(len(p), dtype=torch.bool)
+    lone[2 * 3300 + 3000: 2 * 3300 + 3300] = True
+    assert bool(m[lone].all()) and int(m.sum()) == 900
+
+    plain = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0)
+    asked = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, movable=m, movable_sessions=2)
+    assert plain.min() == 1.0  # nobody saw through anything: the free-space rule keeps the lone car
+    assert asked[lone].max() == 0.0
+    assert asked[~lone].min() == 1.0  # the car two sessions saw, the roads and the wall
+    assert consensus_targets(p, s, 0.5, 2.5, normals=n, movable=m, movable_sessions=1).min() == 1.0
+    only_b = s == 2
+    assert consensus_targets(p[only_b], s[only_b], 0.5, 2.5, normals=n[only_b], movable=m[only_b],
+                             movable_sessions=2).min() == 1.0
+
+
 def test_calibrated_confidence_keeps_what_enough_observers_saw() -> None:
     """c_th 0.7, keep 0.55: 2 of 3 and 3 of 5 observers keep a surface (the raw fraction, 0.67 and 0.6,
     dropped both), 1 of 2, 1 of 3 and 2 of 5 do not. Monotone, 0 and 1 fixed; keep = c_th is the raw fraction."""
