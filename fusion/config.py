@@ -51,6 +51,7 @@ from fusion.labels import LABEL_BY_NAME
 
 GRID_TYPES = ("hash", "dense", "octree")
 CONSENSUS_EVIDENCE = ("free_space", "cover")
+MOVABLE_WITNESS = ("any", "movable")
 
 
 PRESETS = ("cpu", "paper", "tiny")
@@ -205,6 +206,10 @@ class FusionConfig:
     # cannot drop a car parked where one session drove: no other session saw through it (README, "Camera fleets")
     consensus_movable_sessions: int = 2
     consensus_movable: tuple[str, ...] = ("vehicle", "obstacle")
+    # a witness: "any" surface of another session within consensus_radius_m, or a "movable" one within
+    # consensus_movable_radius_m (the road beside a parked car's flank does not vouch for the car)
+    consensus_movable_witness: str = "any"
+    consensus_movable_radius_m: float = 1.0
     consensus_at: tuple[float, ...] = (0.4, 0.7)  # fractions of training at which targets are recomputed
     pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
     class_balance: float = 0.5  # pool faces weighted by area × (mean class share / class share)^this
@@ -233,6 +238,9 @@ class FusionConfig:
             raise ValueError(f"grid_type must be one of {GRID_TYPES}, got {self.grid_type!r}")
         if self.consensus_evidence not in CONSENSUS_EVIDENCE:
             raise ValueError(f"consensus_evidence must be one of {CONSENSUS_EVIDENCE}, got {self.consensus_evidence!r}")
+        if self.consensus_movable_witness not in MOVABLE_WITNESS:
+            raise ValueError(f"consensus_movable_witness must be one of {MOVABLE_WITNESS}, "
+                             f"got {self.consensus_movable_witness!r}")
         unknown = [name for name in self.consensus_movable if name not in LABEL_BY_NAME]
         if unknown:
             raise ValueError(f"consensus_movable names unknown labels: {', '.join(unknown)}")

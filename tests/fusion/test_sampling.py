@@ -123,6 +123,33 @@ def test_a_movable_object_needs_a_second_witness_where_no_session_saw_through_it
                              movable_sessions=2).min() == 1.0
 
 
+def test_a_movable_witness_may_stand_farther_off_than_any_surface() -> None:
+    """Two sessions saw the flank of one parked car 0.9 m apart (depth error along the viewing ray); session 0
+    alone saw a second car on a street it drove alone. Any surface within 0.5 m as a witness drops both cars;
+    a movable-class surface within 1 m keeps the shared car and still drops the lone one."""
+    rng = np.random.default_rng(6)
+    pts, sess, mov = [], [], []
+    for s, y in ((0, 2.0), (1, 2.9)):
+        pts += [_plane(rng, (0, 40), (-6, 0), 0.0, 2000),
+                np.column_stack([rng.uniform(10, 14, 300), np.full(300, y), rng.uniform(0.8, 1.6, 300)])]
+        sess += [np.full(2000, s), np.full(300, s)]
+        mov += [np.zeros(2000, bool), np.ones(300, bool)]
+    pts.append(np.column_stack([rng.uniform(30, 34, 300), np.full(300, 40.0), rng.uniform(0.8, 1.6, 300)]))
+    sess.append(np.zeros(300, int))
+    mov.append(np.ones(300, bool))
+    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
+    s = torch.tensor(np.concatenate(sess))
+    m = torch.tensor(np.concatenate(mov))
+    shared = m & (p[:, 1] < 10)
+    lone = m & (p[:, 1] > 10)
+    n = torch.where(m[:, None], torch.tensor([0.0, -1.0, 0.0]), torch.tensor([0.0, 0.0, 1.0]))
+    near_any = consensus_targets(p, s, 0.5, 2.5, normals=n, movable=m, movable_sessions=2)
+    near_mov = consensus_targets(p, s, 0.5, 2.5, normals=n, movable=m, movable_sessions=2, movable_radius_m=1.0)
+    assert near_any[shared].max() == 0.0 and near_any[lone].max() == 0.0
+    assert near_mov[shared].min() == 1.0 and near_mov[lone].max() == 0.0
+    assert near_mov[~m].min() == 1.0
+
+
 def test_calibrated_confidence_keeps_what_enough_observers_saw() -> None:
     """c_th 0.7, keep 0.55: 2 of 3 and 3 of 5 observers keep a surface (the raw fraction, 0.67 and 0.6,
     dropped both), 1 of 2, 1 of 3 and 2 of 5 do not. Monotone, 0 and 1 fixed; keep = c_th is the raw fraction."""
