@@ -224,7 +224,6 @@ def consensus_targets(
     pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27,
     keep_fraction: float | None = None, c_th: float = 0.7, normals: Tensor | None = None,
     column_m: float = 3.0, movable: Tensor | None = None, movable_sessions: int = 0,
-    movable_radius_m: float | None = None,
 ) -> Tensor:
     """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
     with evidence about this surface that saw it (had a point within ~``near_m``).
@@ -246,9 +245,7 @@ def consensus_targets(
     gets 0, evidence or not. A car parked on a street that only one session drove has no session that saw
     through it, so the free-space rule keeps it; this rule asks a movable object for a second witness.
     A static car two sessions passed stays; with fewer sessions in the tile than that, nothing is asked.
-    A witness is any surface of the session within ~``near_m``, or with ``movable_radius_m`` a movable
-    one within that (wider: two cameras' depth errors put one car's surfaces ~1 m apart, and the road
-    another session saw beside a parked car's flank must not vouch for the car).
+    A witness is any surface of the session within ~``near_m``.
 
     "Within r" is decided on occupancy grids (cells of r/2, r/4 for the cover), dilated by r with
     shifted ORs along each axis: a cube of half-width r up to one cell, not a ball. That is O(P + cells) per
@@ -269,13 +266,7 @@ def consensus_targets(
         against += hit_e & ~hit_n
     fraction = (near / (near + against).clamp(min=1)).float()
     if movable is not None and 1 < movable_sessions <= len(near_hit):
-        if movable_radius_m is None:
-            seen = near
-        else:
-            seen = torch.zeros_like(near)
-            for hit in _within(pool_tile[movable], pool_session[movable], movable_radius_m, 2, max_cells):
-                seen[movable] += hit
-        fraction = torch.where(movable & (seen < movable_sessions), torch.zeros_like(fraction), fraction)
+        fraction = torch.where(movable & (near < movable_sessions), torch.zeros_like(fraction), fraction)
     return fraction if keep_fraction is None else calibrated_confidence(fraction, keep_fraction, c_th)
 
 

@@ -123,15 +123,15 @@ def test_a_movable_object_needs_a_second_witness_where_no_session_saw_through_it
                              movable_sessions=2).min() == 1.0
 
 
-def test_a_movable_witness_may_stand_farther_off_than_any_surface() -> None:
-    """Two sessions saw the flank of one parked car 0.9 m apart (depth error along the viewing ray); session 0
-    alone saw a second car on a street it drove alone. Any surface within 0.5 m as a witness drops both cars;
-    a movable-class surface within 1 m keeps the shared car and still drops the lone one."""
+def test_a_witness_is_a_surface_within_the_consensus_radius() -> None:
+    """Two sessions saw the flank of one parked car 0.9 m apart (depth error along the viewing ray) and the car
+    at 0.3 m; session 0 alone saw a third car on a street it drove alone. A witness is a surface within the 0.5 m
+    radius: the car seen 0.3 m apart stays, the one seen 0.9 m apart is dropped like the lone one (the limit)."""
     rng = np.random.default_rng(6)
     pts, sess, mov = [], [], []
-    for s, y in ((0, 2.0), (1, 2.9)):
+    for s, y, x in ((0, 2.0, 10.0), (1, 2.9, 10.0), (0, 2.0, 20.0), (1, 2.3, 20.0)):
         pts += [_plane(rng, (0, 40), (-6, 0), 0.0, 2000),
-                np.column_stack([rng.uniform(10, 14, 300), np.full(300, y), rng.uniform(0.8, 1.6, 300)])]
+                np.column_stack([rng.uniform(x, x + 4, 300), np.full(300, y), rng.uniform(0.8, 1.6, 300)])]
         sess += [np.full(2000, s), np.full(300, s)]
         mov += [np.zeros(2000, bool), np.ones(300, bool)]
     pts.append(np.column_stack([rng.uniform(30, 34, 300), np.full(300, 40.0), rng.uniform(0.8, 1.6, 300)]))
@@ -140,14 +140,13 @@ def test_a_movable_witness_may_stand_farther_off_than_any_surface() -> None:
     p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
     s = torch.tensor(np.concatenate(sess))
     m = torch.tensor(np.concatenate(mov))
-    shared = m & (p[:, 1] < 10)
+    apart = m & (p[:, 1] < 10) & (p[:, 0] < 15)
+    close = m & (p[:, 1] < 10) & (p[:, 0] > 15)
     lone = m & (p[:, 1] > 10)
     n = torch.where(m[:, None], torch.tensor([0.0, -1.0, 0.0]), torch.tensor([0.0, 0.0, 1.0]))
     near_any = consensus_targets(p, s, 0.5, 2.5, normals=n, movable=m, movable_sessions=2)
-    near_mov = consensus_targets(p, s, 0.5, 2.5, normals=n, movable=m, movable_sessions=2, movable_radius_m=1.0)
-    assert near_any[shared].max() == 0.0 and near_any[lone].max() == 0.0
-    assert near_mov[shared].min() == 1.0 and near_mov[lone].max() == 0.0
-    assert near_mov[~m].min() == 1.0
+    assert near_any[apart].max() == 0.0 and near_any[lone].max() == 0.0
+    assert near_any[close].min() == 1.0 and near_any[~m].min() == 1.0
 
 
 def test_calibrated_confidence_keeps_what_enough_observers_saw() -> None:
