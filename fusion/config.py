@@ -93,8 +93,9 @@ class FusionConfig:
     iterations: int = 300  # a full tile's steps; fusion.schedule scales them with the tile's content
     odom_init: bool = True  # start from each session's odometry chain rigidly fitted to its GPS poses
     # coarse registration (fusion.coarse): each session's odometry chain, as one rigid body, searched over
-    # yaw × 3-D shift (±coarse_range_sigmas GPS σ) against the other sessions' surfaces before the field
-    # alignment: widens the pose basin beyond the coarsest field level's ~2 m
+    # yaw × 3-D shift (±coarse_range_sigmas σ/√n: a chain of n submaps sits on n GPS fixes) against the
+    # other sessions' surfaces before the field alignment: widens the pose basin beyond the coarsest field
+    # level's ~2 m
     coarse_register: bool = True
     coarse_voxel_m: float = 1.0  # first stage's voxel (second: half of it)
     coarse_points_per_m2: float = 8.0  # reference surface samples per m² (capped per submap below)
@@ -126,6 +127,7 @@ class FusionConfig:
     fine_same_session: bool = False
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
+    fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
     fine_min_dist_m: float = 0.25  # ... to this
     fine_normal_dot: float = 0.7  # a match's normals must agree this well
     fine_weight: float = 20.0  # each submap's matches count as this many observations (σ units)

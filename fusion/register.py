@@ -19,7 +19,8 @@ horizontal position, the road only height and tilt; spread over the directions t
 ``fine_normal_balance``, so the few surfaces facing along a street hold a share of the data term). Rounds of
 
 1. correspondences: each sample's nearest sample of a submap of *another session* within the round's
-   radius whose normal agrees (``fine_normal_dot``); the radius shrinks geometrically from ``fine_max_dist_m`` to
+   radius whose normal agrees (``fine_normal_dot``); the radius shrinks geometrically from ``fine_max_dist_m``
+   (or ``fine_basin_sigmas`` × the GPS σ where wider: ``match_radii``) to
    ``fine_min_dist_m`` over the rounds;
 2. L-BFGS on  Σ_submaps ``fine_weight`` · mean ρ(r / σ)  +  odometry  +  GPS prior,  with r the
    point-to-plane residual along the pair's mean normal, σ half the round's radius and ρ(u) = log(1 + u²)
@@ -37,6 +38,7 @@ or GPU), SciPy k-d trees for the correspondences; no Open3D.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -98,6 +100,25 @@ def surface_samples(sm: SubmapInput, count: int, vertical_weight: float, rng: np
     return on_triangles(sm.mesh.vertices[sm.mesh.faces[face]], u, v), normal[face]
 
 
+def match_radii(config: FusionConfig, gps_sigma_m: float) -> np.ndarray:
+    """The rounds' match radii (m): from ``fine_max_dist_m``, or ``fine_basin_sigmas`` × the submaps' GPS σ
+    (``gps_sigma_m``, their median) where that is wider, shrinking geometrically to ``fine_min_dist_m``.
+
+    Why σ: a session's odometry chain placed on its GPS fixes starts about σ from the others (σ 4 m:
+    1.3-3 m per session on the bench), and a match is found only within the radius; from 2 m the widest
+    round left exact sessions 1-1.4 m off (3×3 bench, σ 4 m, seeds 0-2: 0.72 / 1.02 / 0.84 m before the
+    field) where 5 m brought them to 0.24 / 0.22 / 0.29 m. A wider start keeps the default schedule's
+    shrink per round (``fine_rounds`` rounds over the default range), so it adds rounds instead of
+    coarsening each step."""
+    lo, hi = config.fine_min_dist_m, config.fine_max_dist_m
+    if config.fine_rounds <= 1 or hi <= lo:
+        return np.geomspace(hi, lo, max(1, config.fine_rounds))
+    start = max(hi, config.fine_basin_sigmas * gps_sigma_m)
+    per_round = math.log(hi / lo) / (config.fine_rounds - 1)
+    rounds = max(config.fine_rounds, 1 + math.ceil(math.log(start / lo) / per_round - 1e-9))
+    return np.geomspace(start, lo, rounds)
+
+
 def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.Tensor, config: FusionConfig,
                   device: torch.device | None = None) -> FineResult:
     """Register the free submaps of ``subs`` (start poses ``start``, GPS anchors ``gps`` (M, 4, 4), one
@@ -138,7 +159,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     pts_t = torch.tensor(pts, device=dev)
     nrm_t = torch.tensor(nrm, device=dev)
     own_t = torch.tensor(own, device=dev)
-    radii = np.geomspace(config.fine_max_dist_m, config.fine_min_dist_m, config.fine_rounds)
+    radii = match_radii(config, float(np.median([s.gps_sigma.trans_m for s in subs if s.free])))
     rounds = []
     for radius in radii:
         with torch.no_grad():

@@ -56,6 +56,23 @@ def test_a_session_metres_and_degrees_off_is_moved_onto_the_other() -> None:
     assert min(m["shift_m"] for m in res.metrics.values()) > 1.0  # gauge: each session took about half
 
 
+def test_a_session_of_n_submaps_is_searched_over_its_chains_placement_error() -> None:
+    # one GPS fix of σ 2 m: ±3 σ = 6 m; a chain on four independent fixes sits ~σ/2 off: ±3 m
+    def session(sid: str, n: int, wrong: Pose) -> list[SubmapInput]:
+        return [SubmapInput(f"{sid}{k}", sid, k, _block(), wrong, Pose.identity(), Sigma(2.0, 2.0))
+                for k in range(n)]
+
+    wrong = Pose(np.array([-2.5, 2.0, 0.0]), rot_z(0.0))
+    ranges = {}
+    for n in (1, 4):
+        subs = [replace(s, free=False) for s in session("a", 1, Pose.identity())] + session("b", n, wrong)
+        res = coarse_register(subs, _start(subs), CFG)
+        ranges[n] = res.metrics["b"]["first_range_m"]  # the wide stage (then a ±2 m fine one)
+        t, yaw = _relative(res, 0, 1)
+        assert np.linalg.norm(t) < 0.5 and abs(yaw) < 1.0, (n, t, yaw)  # found either way
+    assert ranges == {1: 6.0, 4: 3.0}
+
+
 def test_the_mean_correction_is_taken_out_when_nothing_is_fixed() -> None:
     wrong = Pose(np.array([2.0, 1.5, 0.0]), rot_z(0.0))
     subs = _pair(street(), street(), wrong, Sigma(2.0, 2.0))

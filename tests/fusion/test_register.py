@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.register import _correspondences, fine_register, surface_samples
+from fusion.register import _correspondences, fine_register, match_radii, surface_samples
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
@@ -60,6 +60,33 @@ def test_submaps_farther_apart_than_the_largest_radius_are_not_matched_and_keep_
     assert all(r["matches"] == 0 for r in res.metrics["rounds"])
     for got, s in zip(res.poses, subs, strict=True):
         np.testing.assert_allclose(got, s.pose_init.matrix(), atol=1e-6)
+
+
+def test_the_first_radius_widens_with_the_gps_sigma_and_keeps_the_shrink_per_round() -> None:
+    default = match_radii(CFG, 1.0)  # 1.25 × 1 m < 2 m: the configured schedule
+    np.testing.assert_allclose(default, np.geomspace(CFG.fine_max_dist_m, CFG.fine_min_dist_m, CFG.fine_rounds))
+    wide = match_radii(CFG, 4.0)
+    assert wide[0] == CFG.fine_basin_sigmas * 4.0 and wide[-1] == CFG.fine_min_dist_m
+    assert len(wide) > len(default)  # more rounds, not coarser steps
+    assert wide[1] / wide[0] >= default[1] / default[0] - 1e-9
+    assert len(match_radii(CFG.with_(fine_basin_sigmas=0.0), 4.0)) == CFG.fine_rounds
+
+
+def _far_pair(gps_sigma: float) -> list[SubmapInput]:
+    """``b`` starts 5 m / 3° off, its GPS fix where it starts (nothing but the data pulls it back)."""
+    wrong = Pose(np.array([4.0, -3.0, 0.2]), rot_z(3.0))
+    subs = _pair(wrong)
+    for s in subs:
+        s.gps_sigma = Sigma(gps_sigma, gps_sigma)
+    subs[1].pose_gps = wrong
+    return subs
+
+
+def test_a_submap_beyond_the_default_radius_is_registered_when_the_gps_sigma_says_it_can_be_that_far() -> None:
+    t, deg = _relative(_run(_far_pair(5.0)).poses)  # first radius 6.25 m: the walls 5 m apart match
+    assert t < 0.05 and deg < 0.2, (t, deg)
+    t, _ = _relative(_run(_far_pair(1.0)).poses)  # radius 2 m: the ground and a few wrong walls, it stays off
+    assert t > 3.0, t
 
 
 def test_correspondences_skip_the_own_submap_and_disagreeing_normals() -> None:
