@@ -253,7 +253,8 @@ def format_region_table(report: dict[str, Any]) -> str:
         if row.get("per_class_f"):
             lines.append(f"  {name} per class F: " + "  ".join(f"{k} {fmt(v, '.2f')}" for k, v in row["per_class_f"].items()))
         if row.get("pose_session_m"):
-            lines.append(f"  {name} pose: surface offset {fmt(row.get('pose_surface_m'))} m; per session m: " + "  ".join(
+            lines.append(f"  {name} pose: surface offset {fmt(row.get('pose_surface_m'))} m; between sessions "
+                         f"{fmt(row.get('pose_relative_m'))} m; per session m: " + "  ".join(
                 f"{k} {v:.3f}" for k, v in row["pose_session_m"].items()))
         if "per_tile" not in row:
             continue

@@ -147,7 +147,31 @@ def pose_figures(submaps: Sequence[LoadedSubmap], poses: dict[str, Pose], true: 
     surface = [np.mean(np.sum((e.apply(a) @ a_r.T + a_t - g.apply(a)) ** 2, axis=1))
                for e, g, a in zip(est, tru, anchor, strict=True)]
     return {"pose_trans_m": t, "pose_rot_deg": r, "poses": len(used), "pose_session_m": per_session,
-            "pose_surface_m": float(np.sqrt(np.mean(surface)))}
+            "pose_surface_m": float(np.sqrt(np.mean(surface))),
+            "pose_relative_m": relative_offset(used, est, tru, (g_r, g_t))}
+
+
+RELATIVE_NEAR_M = 20.0  # submaps whose true centroids lie this close count as neighbours (a submap is ~25 m long)
+
+
+def relative_offset(used: Sequence[LoadedSubmap], est: Sequence[Pose], true: Sequence[Pose], gauge: Gauge,
+                    near_m: float = RELATIVE_NEAR_M) -> float | None:
+    """RMS over neighbouring submaps of *different* sessions (true centroids within ``near_m``) of the
+    difference of their centroids' offsets from the truth after ``gauge``, metres; None without such a
+    pair. What two sessions meeting at one place disagree by, free of the map's common low-frequency
+    warp: the whole map's shape at the scale of hundreds of metres rests on odometry and GPS alone (the
+    data only tie sessions to each other), so pose RMSE after a rigid gauge also counts how the joint map
+    bends, which no registration can see."""
+    g_r, g_t = gauge
+    cent = [s.input.mesh.vertices.mean(0)[None] for s in used]
+    at_true = np.array([g.apply(c)[0] for g, c in zip(true, cent, strict=True)])
+    err = np.array([g_r @ e.apply(c)[0] + g_t for e, c in zip(est, cent, strict=True)]) - at_true
+    session = np.array([s.input.session_id for s in used])
+    i, j = np.array(sorted(cKDTree(at_true[:, :2]).query_pairs(near_m)), dtype=np.int64).reshape(-1, 2).T
+    other = session[i] != session[j]
+    if not other.any():
+        return None
+    return float(np.sqrt(np.mean(np.sum((err[i[other]] - err[j[other]]) ** 2, axis=1))))
 
 
 def gauge_size(gauge: Gauge, region: metrics.Region) -> dict[str, float]:

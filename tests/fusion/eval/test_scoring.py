@@ -130,3 +130,32 @@ def test_pose_figures_split_the_error_by_session_and_measure_the_surface_offset(
     assert figs["poses"] == 8 and set(figs["pose_session_m"]) == {"a", "b"}
     assert figs["pose_session_m"]["b"] > figs["pose_session_m"]["a"]
     assert 0.1 < figs["pose_surface_m"] < 0.4
+
+
+def test_the_relative_offset_ignores_a_warp_all_sessions_share_and_sees_one_session_off() -> None:
+    """Two sessions driving the same 200 m road: bent together (the map's common warp, up to 0.5 m at the
+    ends) they still meet exactly (relative 0, pose RMSE not); session b shifted 0.3 m across the road, the
+    relative offset is the shift."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(2)
+    subs, true = [], {}
+    for sid in ("a", "b"):
+        for k in range(8):
+            name = f"{sid}{k}"
+            mesh = SimpleNamespace(vertices=rng.uniform(-5, 5, (50, 3)))
+            subs.append(SimpleNamespace(input=SimpleNamespace(id=name, session_id=sid, mesh=mesh)))
+            true[name] = _pose(np.eye(3), np.array([25.0 * k + (1.0 if sid == "b" else 0.0), 0.0, 0.0]))
+
+    def bent(name: str, extra: float = 0.0) -> Pose:
+        x = true[name].t[0]
+        return Pose(true[name].t + np.array([0.0, 0.5 * ((x - 90) / 90) ** 2 + extra, 0.0]), true[name].q)
+
+    warped = {n: bent(n) for n in true}
+    figs = scoring.pose_figures(subs, warped, true)
+    assert figs["pose_trans_m"] > 0.1
+    assert figs["pose_relative_m"] == pytest.approx(0.0, abs=0.015)  # the warp differs over 1 m by ≤ 0.011 m
+    shifted = {n: bent(n, 0.3 if n.startswith("b") else 0.0) for n in true}
+    assert scoring.pose_figures(subs, shifted, true)["pose_relative_m"] == pytest.approx(0.3, abs=0.02)
+    alone = [s for s in subs if s.input.session_id == "a"]
+    assert scoring.pose_figures(alone, warped, true)["pose_relative_m"] is None  # no second session to meet
