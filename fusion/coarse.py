@@ -22,7 +22,7 @@ around the first's pick.
   that beat the chance bar on a 3×3-tile world of 5 sessions: with the other sessions at their *true*
   poses the truth scored 0.17 and a candidate 17 m away 0.24 (camera, seed 0). Before the field, GPS
   4 m / 4°, exact seeds 0-2 / camera seeds 0-1: 2.28 / 1.02 / 0.31 / 4.93 / 3.50 m with ±3 σ of a fix,
-  0.24 / 0.22 / 0.17 / 1.72 / 1.09 m with ±3 σ/√n (each with the σ-wide fine stage, ``fusion.register``).
+  0.24 / 0.22 / 0.17 / 1.68 / 1.09 m with ±3 σ/√n (each with the σ-wide fine stage, ``fusion.register``).
 
 - Significance: a correction is kept only if the best score beats the start's by more than chance
   reaches among that many candidates (from the samples' effective count) and ``coarse_min_gain``.
