@@ -51,6 +51,7 @@ from fusion.labels import LABEL_BY_NAME
 
 GRID_TYPES = ("hash", "dense", "octree")
 CONSENSUS_EVIDENCE = ("free_space", "cover")
+FINE_SOLVERS = ("gn", "lbfgs")
 
 
 PRESETS = ("cpu", "paper", "tiny")
@@ -120,21 +121,36 @@ class FusionConfig:
     # non-ground samples spread over the horizontal directions their normals face (normal-space sampling,
     # fusion.register.surface_samples; 0: by area): facades along a street leave the direction of travel open
     fine_normal_balance: float = 1.0
-    # match samples to the own session's other submaps too (off: other sessions only). On, a session's
-    # overlapping consecutive submaps were often a sample's nearest match (zero residual wherever the session
-    # is), diluting the matches that move it: a session shifted 1 m, exact seed 0, ended 0.49/0.13 m (along/
-    # across) off instead of 0.52/0.29 m with it on (30 L-BFGS steps, before the per-session correction)
-    fine_same_session: bool = False
+    # match samples to the own session's other submaps too (off: other sessions only). Off, each session's chain
+    # between the places other sessions pin it was shaped by odometry alone; on, its consecutive submaps'
+    # overlaps hold it. Start poses, 3x3 exact bench seed 0, with fine_noise_max_gain 20: 0.104 -> 0.071 m
+    fine_same_session: bool = True
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
     fine_min_dist_m: float = 0.25  # ... to this
     fine_normal_dot: float = 0.7  # a match's normals must agree this well
-    fine_weight: float = 20.0  # each submap's matches count as this many observations (σ units)
-    # L-BFGS iterations per round. Odometry makes the problem stiff (cm between neighbours) and 30 left sessions
-    # where they started: where the fine stage leaves the poses, 3x3 bench seed 0, after the rigid gauge,
-    # exact / camera: 30 steps 0.489 / 0.917 m, 150 0.169 / 0.584 m (+20 s for 46 submaps), 400 0.155 / 0.553 m
+    fine_weight: float = 20.0  # each submap's matches count as this many observations (σ units) ...
+    # ... × (σ / the residuals' robust spread)², up to this (fusion.register._noise_gain; 1: off). Start poses,
+    # 3x3 bench seeds 0/1/2, GPS 1.5 m (with fine_same_session): exact 0.175/0.174/0.126 -> 0.071/0.044/0.049 m
+    fine_noise_max_gain: float = 20.0
+    fine_noise_floor_m: float = 0.02
+    # the gain on ground-like matches too. Off: a monocular road surface is biased in height by the submap's
+    # scale error (camera 1.6 m above it) while its residuals stay tight, and on it the camera starts' height
+    # error grew 0.150 -> 0.235 m (seed 0); exact 0.071 -> 0.092 m with it off
+    fine_noise_ground: bool = False
+    # after the field alignment, the fine registration once more over this many rounds from fine_polish_max_m
+    # (fusion.align._polish; 0: off): the field's stochastic pose steps took the exact map from 0.07 m back to
+    # 0.195 m (seed 0); polished 0.073 m
+    fine_polish_rounds: int = 3
+    fine_polish_max_m: float = 0.75
+    # accepted steps per round at most (lbfgs: iterations). Odometry makes the problem stiff (cm between
+    # neighbours): L-BFGS, 3x3 bench seed 0, exact / camera start: 30 steps 0.489 / 0.917 m, 150 0.169 / 0.584 m,
+    # 400 0.155 / 0.553 m; exact with fine_weight 400 and same-session matches 150 0.168 m, 600 0.084 m (165 s). gn:
+    # Levenberg-Marquardt on the normal equations (fusion.register._gauss_newton), 5-15 steps per round: 0.071 m
+    # in 15 s
     fine_steps: int = 150
+    fine_solver: str = "gn"
     pose_warmup: int = 10  # iterations with frozen poses so the field first takes a rough shape
     surface_samples: int = 4096
     space_samples: int = 4096
@@ -238,6 +254,8 @@ class FusionConfig:
             raise ValueError(f"grid_type must be one of {GRID_TYPES}, got {self.grid_type!r}")
         if self.consensus_evidence not in CONSENSUS_EVIDENCE:
             raise ValueError(f"consensus_evidence must be one of {CONSENSUS_EVIDENCE}, got {self.consensus_evidence!r}")
+        if self.fine_solver not in FINE_SOLVERS:
+            raise ValueError(f"fine_solver must be one of {FINE_SOLVERS}, got {self.fine_solver!r}")
         unknown = [name for name in self.consensus_movable if name not in LABEL_BY_NAME]
         if unknown:
             raise ValueError(f"consensus_movable names unknown labels: {', '.join(unknown)}")

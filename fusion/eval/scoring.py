@@ -159,9 +159,8 @@ def relative_offset(used: Sequence[LoadedSubmap], est: Sequence[Pose], true: Seq
     """RMS over neighbouring submaps of *different* sessions (true centroids within ``near_m``) of the
     difference of their centroids' offsets from the truth after ``gauge``, metres; None without such a
     pair. What two sessions meeting at one place disagree by, free of the map's common low-frequency
-    warp: the whole map's shape at the scale of hundreds of metres rests on odometry and GPS alone (the
-    data only tie sessions to each other), so pose RMSE after a rigid gauge also counts how the joint map
-    bends, which no registration can see."""
+    warp: pose RMSE after a rigid gauge also counts how the joint map bends as a whole (each session's
+    chain between the places other sessions pin it, held by its own submaps' overlaps and its odometry)."""
     g_r, g_t = gauge
     cent = [s.input.mesh.vertices.mean(0)[None] for s in used]
     at_true = np.array([g.apply(c)[0] for g, c in zip(true, cent, strict=True)])

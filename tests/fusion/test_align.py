@@ -48,6 +48,7 @@ def test_align_region_reduces_pose_error_across_the_border() -> None:
     m = res.metrics
     assert m["num_tiles"] == 2 and m["num_submaps"] == 2 and m["num_free"] == 2
     assert m["iterations"] == 2 * 40 and not m["incremental"]
+    assert len(m["coarse"]["polish"]["rounds"]) == 3  # the fine registration once more after the field
     assert set(m["tile_pool_points"]) == {"0_0", "1_0"} and set(res.fields) == {(0, 0), (1, 0)}
     assert events and events[-1].stage == "align" and events[-1].iteration == events[-1].total
     # heads are shared by the tiles' fields

@@ -153,3 +153,94 @@ def test_a_whole_session_off_by_a_metre_is_moved_onto_the_other_not_held_by_its_
     for k in (1, 2, 3):
         t, deg = _relative([res.poses[0], res.poses[k]])
         assert t < 0.05 and deg < 0.2, (k, t, deg)
+
+
+def test_the_odometry_and_gps_jacobian_matches_autograd() -> None:
+    from fusion.poses import PoseSet
+    from fusion.register import _chain_colours, _prior_jacobian, _prior_residuals
+    from fusion.training import PoseTerms
+
+    rng = np.random.default_rng(3)
+    subs = []
+    for k in range(5):  # two sessions, chains of 3 and 2, poses a few metres and degrees apart
+        sid = "sa" if k < 3 else "sb"
+        odo = Pose(rng.normal(size=3) * 3, rot_z(float(rng.normal() * 5)))
+        init = Pose(rng.normal(size=3) * 3, rot_z(float(rng.normal() * 5)))
+        subs.append(SubmapInput(f"m{k}", sid, k, _block(), init, odo, Sigma(1.5, 1.5), pose_gps=Pose.identity()))
+    poses = torch.tensor(np.stack([s.pose_init.matrix() for s in subs]))
+    cents = torch.tensor(rng.normal(size=(5, 3)) * 10)
+    gps = torch.tensor(np.stack([Pose(rng.normal(size=3), rot_z(float(rng.normal()))).matrix() for _ in subs]))
+    terms = PoseTerms.of(subs, torch.device("cpu"))
+    got = _prior_jacobian(poses, cents, terms, gps, torch.tensor(_chain_colours(subs)))
+
+    def residuals(xi: torch.Tensor) -> torch.Tensor:
+        ps = PoseSet(poses, cents, torch.ones(5, dtype=torch.bool))
+        c = ps.to_centroid
+        from fusion import se3
+        return _prior_residuals(c @ se3.se3_exp(xi.reshape(5, 6)) @ se3.inverse(c) @ poses, terms, gps).reshape(-1)
+
+    want = torch.autograd.functional.jacobian(residuals, torch.zeros(30, dtype=torch.float64))
+    np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-5)
+
+
+def _bent_session(steps_per_round: int, solver: str):  # noqa: ANN202
+    # session b: four submaps over session a's block, started on a bend (0, 0.3, 0.6, 0.9 m across and
+    # 0-1.5° of yaw) while their odometry says they coincide; GPS 1.5 m at the truth
+    sigma = Sigma(1.5, 1.5)
+    subs = [SubmapInput("a", "sa", 0, _block(), Pose.identity(), Pose.identity(), sigma, pose_gps=Pose.identity())]
+    for k in range(4):
+        wrong = Pose(np.array([0.1 * k, 0.3 * k, 0.0]), rot_z(0.5 * k))
+        subs.append(SubmapInput(f"b{k}", "sb", k, _block(extra_box=True), wrong, Pose.identity(),
+                                Sigma(0.02, 0.05), pose_gps=Pose.identity()))
+    return _run(subs, fine_steps=steps_per_round, fine_solver=solver)
+
+
+def test_gauss_newton_registers_a_bent_chain_in_a_few_steps_per_round() -> None:
+    res = _bent_session(5, "gn")
+    assert all(r["steps"] <= 5 for r in res.metrics["rounds"])
+    for k in range(1, 5):
+        t, deg = _relative([res.poses[0], res.poses[k]])
+        assert t < 0.02 and deg < 0.05, (k, t, deg)
+
+
+def test_the_lbfgs_solver_stays_available_and_registers_the_same_chain_given_steps() -> None:
+    res = _bent_session(150, "lbfgs")
+    for k in range(1, 5):
+        t, deg = _relative([res.poses[0], res.poses[k]])
+        assert t < 0.05 and deg < 0.2, (k, t, deg)
+
+
+def test_an_unknown_solver_is_refused() -> None:
+    import pytest
+
+    with pytest.raises(ValueError, match="fine_solver"):
+        CFG.with_(fine_solver="adam")
+
+
+def test_the_data_count_more_the_tighter_they_agree_within_the_cap() -> None:
+    from fusion.register import _noise_gain
+
+    rng = np.random.default_rng(0)
+    tight = rng.normal(scale=0.03, size=4000)  # exact surfaces: cm residuals
+    loose = rng.normal(scale=0.5, size=4000)  # a round whose residuals are still the misalignment
+    cfg = CFG.with_(fine_noise_max_gain=20.0)
+    assert 15.0 < _noise_gain(tight, 0.125, cfg) < 20.0  # (0.125 / 0.03)² ≈ 17
+    assert _noise_gain(tight, 0.125, cfg.with_(fine_noise_max_gain=5.0)) == 5.0
+    assert _noise_gain(loose, 0.125, cfg) == 1.0  # never below the base weight
+    assert _noise_gain(tight * 0.01, 0.125, cfg) == 20.0  # the floor keeps exact duplicates finite
+    assert _noise_gain(tight, 0.125, CFG.with_(fine_noise_max_gain=1.0)) == 1.0  # off
+
+
+def test_the_polish_after_the_field_registers_what_the_field_left_a_few_decimetres_off() -> None:
+    from fusion.align import _polish
+    from fusion.poses import PoseSet
+
+    subs = _pair(Pose(np.array([0.3, -0.25, 0.1]), rot_z(0.8)))  # where a field's noisy steps might leave b
+    start = np.stack([s.pose_init.matrix() for s in subs])
+    cents = np.stack([m[:3, :3] @ s.mesh.vertices.mean(0) + m[:3, 3] for m, s in zip(start, subs, strict=True)])
+    poses = PoseSet(torch.tensor(start), torch.tensor(cents), torch.tensor([True, True]))
+    gps = torch.tensor(np.stack([s.pose_gps.matrix() for s in subs]))
+    polished, metrics = _polish(subs, poses, gps, CFG.with_(fine_polish_rounds=3, fine_polish_max_m=0.75), torch.device("cpu"))
+    assert [round(r["radius_m"], 3) for r in metrics["rounds"]] == [0.75, 0.433, 0.25]
+    t, deg = _relative(list(polished().detach().numpy()))
+    assert t < 0.02 and deg < 0.1, (t, deg)
