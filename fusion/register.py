@@ -189,10 +189,13 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
         sigma = radius / 2
         # each submap: fine_weight observations (× gain: in units of the data's own noise, ground and other
         # surfaces each by their own spread)
+        # (rounds wider than fine_max_dist_m, the basin's extension for a wide GPS σ, keep the base weight:
+        # their residuals are still the misalignment, and weighted up the wrong walls matched there won)
         r0 = ((posed[src] - posed[dst]) * mean_n).sum(-1)
         ground = np.abs(mean_n[:, 2]) >= UPRIGHT_NZ
-        gains = np.where(ground, _noise_gain(r0[ground], sigma, config, config.fine_noise_ground),
-                         _noise_gain(r0[~ground], sigma, config))
+        basin = radius > config.fine_max_dist_m
+        gains = np.where(ground, _noise_gain(r0[ground], sigma, config, config.fine_noise_ground and not basin),
+                         _noise_gain(r0[~ground], sigma, config, not basin))
         gain = float(gains.mean())
         w = torch.tensor(config.fine_weight * gains / counts[own[src]], device=dev)
 
