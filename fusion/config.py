@@ -123,8 +123,9 @@ class FusionConfig:
     fine_normal_balance: float = 1.0
     # match samples to the own session's other submaps too (off: other sessions only). Off, each session's chain
     # between the places other sessions pin it was shaped by odometry alone; on, its consecutive submaps'
-    # overlaps hold it. Start poses, 3x3 exact bench seed 0, with fine_noise_max_gain 20: 0.104 -> 0.071 m
-    fine_same_session: bool = True
+    # overlaps hold it. Start poses, 3x3 exact bench seed 0, with fine_noise_max_gain 20: 0.104 -> 0.071 m; but
+    # fused camera seed 0 geo F 0.801 -> 0.746 (monocular submaps of one session share their biases): off
+    fine_same_session: bool = False
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
