@@ -185,10 +185,15 @@ def _region_poses(
         fine = fine_register(subs, start, gps, config, dev)
         start = fine.poses
         coarse = coarse | {"fine": fine.metrics}
-    centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(start, cents, strict=True)])
-    poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids),
-                    torch.tensor([s.free for s in subs])).to(dev)
+    poses = _pose_set(subs, start, dev)
     return poses, gps, coarse
+
+
+def _pose_set(subs: list[SubmapInput], mats: list[np.ndarray], dev: torch.device) -> PoseSet:
+    """Poses ``mats`` (region frame) of ``subs`` as the centroid-relative ``PoseSet`` the alignment optimises."""
+    cents = [s.mesh.vertices.mean(0) for s in subs]
+    centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(mats, cents, strict=True)])
+    return PoseSet(torch.tensor(np.stack(mats)), torch.tensor(centroids), torch.tensor([s.free for s in subs])).to(dev)
 
 
 def _polish(subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: FusionConfig, dev: torch.device
@@ -202,11 +207,7 @@ def _polish(subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: 
     radii = np.geomspace(max(config.fine_polish_max_m, config.fine_min_dist_m), config.fine_min_dist_m,
                          config.fine_polish_rounds)
     fine = fine_register(subs, current, gps, config, dev, radii)
-    cents = [s.mesh.vertices.mean(0) for s in subs]
-    centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(fine.poses, cents, strict=True)])
-    polished = PoseSet(torch.tensor(np.stack(fine.poses)), torch.tensor(centroids),
-                       torch.tensor([s.free for s in subs])).to(dev)
-    return polished, fine.metrics
+    return _pose_set(subs, fine.poses, dev), fine.metrics
 
 
 def _build_tiles(
