@@ -46,6 +46,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
 import torch
 from scipy.spatial import cKDTree
 
@@ -140,19 +142,23 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     pts, nrm, own = np.concatenate(local), np.concatenate(normals), np.concatenate(owner)
     cents = [s.mesh.vertices.mean(0) for s in subs]
     centroids = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(start, cents, strict=True)])
-    poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids), torch.tensor([s.free for s in subs])).to(dev)
-    # one more rigid correction per session, about its centroid (why: the module docstring, "What")
     label = {sid: k for k, sid in enumerate(sorted({s.session_id for s in subs}))}
     of = np.array([label[s.session_id] for s in subs])
-    rigid = [of == k for k in range(len(label))]
-    whole = PoseSet(torch.eye(4, dtype=torch.float64).repeat(len(label), 1, 1),
-                    torch.tensor(np.stack([centroids[m].mean(0) for m in rigid])),
-                    torch.tensor([all(s.free for s, inside in zip(subs, m, strict=True) if inside) for m in rigid])).to(dev)
-    of_t = torch.tensor(of, device=dev)
     # samples match only other sessions' unless fine_same_session: a session's consecutive submaps overlap
     # and agree wherever the session is, so their samples were often the nearest and diluted the matches
     # that move it; within a session odometry rules
     group = np.arange(len(subs)) if config.fine_same_session else of
+    gauss_newton = config.fine_solver == "gn"
+    if not gauss_newton:  # the L-BFGS path's parameters: a pose per submap, one more rigid one per session
+        poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids),
+                        torch.tensor([s.free for s in subs])).to(dev)
+        # one more rigid correction per session, about its centroid (why: the module docstring, "What")
+        rigid = [of == k for k in range(len(label))]
+        whole = PoseSet(torch.eye(4, dtype=torch.float64).repeat(len(label), 1, 1),
+                        torch.tensor(np.stack([centroids[m].mean(0) for m in rigid])),
+                        torch.tensor([all(s.free for s, inside in zip(subs, m, strict=True) if inside)
+                                      for m in rigid])).to(dev)
+        of_t = torch.tensor(of, device=dev)
 
     def posed_now() -> torch.Tensor:
         return whole()[of_t] @ poses()
@@ -166,7 +172,6 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     own_t = torch.tensor(own, device=dev)
     if radii is None:
         radii = match_radii(config, float(np.median([s.gps_sigma.trans_m for s in subs if s.free])))
-    gauss_newton = config.fine_solver == "gn"
     current = torch.tensor(np.stack(start), device=dev)  # the Gauss-Newton path's poses (region frame)
     local_cents = torch.tensor(np.stack(cents), device=dev)
     free_t = torch.tensor([s.free for s in subs], device=dev)
@@ -305,30 +310,100 @@ def _prior_residuals(poses: torch.Tensor, terms: PoseTerms, gps: torch.Tensor) -
 FD_STEP = 1e-6  # central-difference step of the odometry/GPS Jacobian (m, rad)
 
 
+@dataclass
+class _PriorJacobian:
+    """The odometry/GPS Jacobian, block-sparse: residual block ``r`` (6 rows of ``_prior_residuals``)
+    depends on submaps ``owners[r, 0]`` and ``owners[r, 1]`` through the 6×6 blocks ``blocks[r, 0]`` and
+    ``blocks[r, 1]`` (a GPS block: one submap, its second block zero)."""
+
+    owners: torch.Tensor  # (R, 2)
+    blocks: torch.Tensor  # (R, 2, 6, 6)
+
+    def dense(self, m: int) -> torch.Tensor:
+        """The (R·6, M·6) matrix (tests, small regions)."""
+        rows = len(self.owners)
+        out = torch.zeros(rows, 6, m, 6, dtype=self.blocks.dtype, device=self.blocks.device)
+        for slot in (0, 1):
+            out[torch.arange(rows), :, self.owners[:, slot], :] += self.blocks[:, slot]
+        return out.reshape(rows * 6, m * 6)
+
+
 def _prior_jacobian(poses: torch.Tensor, centroids: torch.Tensor, terms: PoseTerms, gps: torch.Tensor,
-                    colour: torch.Tensor) -> torch.Tensor:
-    """Jacobian (rows of ``_prior_residuals``, M·6) w.r.t. each submap's twist about its centroid, by
-    central differences: 2 colours × 6 directions × 2 evaluations whatever the region's size (an odometry
-    row depends on one submap of each colour, a GPS row on its own submap)."""
+                    colour: torch.Tensor) -> _PriorJacobian:
+    """Jacobian of ``_prior_residuals`` w.r.t. each submap's twist about its centroid, by central
+    differences: 2 colours × 6 directions × 2 evaluations whatever the region's size (an odometry block
+    depends on one submap of each colour, a GPS block on its own submap). Block slot = colour."""
     m = len(poses)
     pairs = terms.pairs
     n_odo = len(pairs)
     rows = n_odo + m
-    jac = torch.zeros(rows, 6, m, 6, dtype=poses.dtype, device=poses.device)
-    # the submap each residual block depends on, per colour
+    own = torch.arange(m, device=poses.device)
+    owners = torch.empty(rows, 2, dtype=torch.long, device=poses.device)
+    blocks = torch.zeros(rows, 2, 6, 6, dtype=poses.dtype, device=poses.device)
     for c in (0, 1):
         mine = colour == c
-        owner_odo = torch.where(mine[pairs[:, 0]], pairs[:, 0], pairs[:, 1]) if n_odo else pairs[:, 0]
-        owner = torch.cat([owner_odo, torch.arange(m, device=poses.device)])
+        owners[:n_odo, c] = torch.where(mine[pairs[:, 0]], pairs[:, 0], pairs[:, 1]) if n_odo else pairs[:, 0]
+        owners[n_odo:, c] = own
         keep = torch.cat([torch.ones(n_odo, dtype=torch.bool, device=poses.device), mine])
         for k in range(6):
             delta = torch.zeros(m, 6, dtype=poses.dtype, device=poses.device)
             delta[mine, k] = FD_STEP
             plus = _prior_residuals(_perturb(poses, centroids, delta), terms, gps)
             minus = _prior_residuals(_perturb(poses, centroids, -delta), terms, gps)
-            col = (plus - minus) / (2 * FD_STEP)  # (rows, 6)
-            jac[torch.arange(rows, device=poses.device)[keep], :, owner[keep], k] = col[keep]
-    return jac.reshape(rows * 6, m * 6)
+            blocks[keep, c, :, k] = ((plus - minus) / (2 * FD_STEP))[keep]  # (rows, 6)
+    return _PriorJacobian(owners, blocks)
+
+
+def _normal_equations(m: int, keys: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+                      free_dofs: np.ndarray) -> scipy.sparse.csc_matrix:
+    """The (free) normal matrix from its 6×6 blocks: ``keys`` lists (row submap, column submap, blocks
+    (n, 6, 6)); blocks at the same place add. Only the submap pairs that share a match or an odometry
+    link hold a block: memory and the sparse solve grow with the region's overlaps, not with M²."""
+    rows = torch.cat([a for a, _, _ in keys])
+    cols = torch.cat([b for _, b, _ in keys])
+    vals = torch.cat([v for _, _, v in keys])
+    place, inverse = torch.unique(rows * m + cols, return_inverse=True)
+    summed = torch.zeros(len(place), 6, 6, dtype=vals.dtype, device=vals.device).index_add_(0, inverse, vals)
+    i = np.arange(6)
+    br, bc = (place // m).cpu().numpy(), (place % m).cpu().numpy()
+    r = (br[:, None, None] * 6 + i[None, :, None]).repeat(6, 2)
+    c = (bc[:, None, None] * 6 + i[None, None, :]).repeat(6, 1)
+    full = scipy.sparse.csc_matrix((summed.cpu().numpy().ravel(), (r.ravel(), c.ravel())), shape=(6 * m, 6 * m))
+    return full[free_dofs][:, free_dofs].tocsc()
+
+
+def _linearise(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: torch.Tensor, local_cents: torch.Tensor,
+               colour: torch.Tensor, free_dofs: np.ndarray) -> tuple[scipy.sparse.csc_matrix, np.ndarray, torch.Tensor]:
+    """The IRLS normal equations at ``poses`` over the twists ``free_dofs`` (indices into M·6): the
+    sparse matrix JᵀWJ, the gradient JᵀWr (both of the data, odometry and GPS terms) and the submaps'
+    centroids the twists turn about (region frame)."""
+    m = len(poses)
+    sigma2 = match.sigma ** 2
+    cents = (poses[:, :3, :3] @ local_cents[:, :, None])[:, :, 0] + poses[:, :3, 3]
+    q_s = transform(poses, match.src, match.p_src)
+    q_d = transform(poses, match.dst, match.p_dst)
+    r = ((q_s - q_d) * match.normal).sum(-1)
+    weight = match.w / (sigma2 + r * r)  # IRLS: the Cauchy loss's curvature at the current residual
+    j_s = torch.cat([match.normal, torch.linalg.cross(q_s - cents[match.src], match.normal)], -1)
+    j_d = -torch.cat([match.normal, torch.linalg.cross(q_d - cents[match.dst], match.normal)], -1)
+    jp = _prior_jacobian(poses, cents, terms, gps, colour)
+    rp = _prior_residuals(poses, terms, gps)  # (R, 6)
+    # the matches' four blocks, summed per (source, target) submap pair first: few pairs, many matches
+    pair, inverse = torch.unique(match.src * m + match.dst, return_inverse=True)
+    ends = ((pair // m, j_s), (pair % m, j_d))
+    keys = [(a, b, torch.zeros(len(pair), 6, 6, dtype=poses.dtype, device=poses.device).index_add_(
+                0, inverse, weight[:, None, None] * ja[:, :, None] * jb[:, None, :]))
+            for a, ja in ends for b, jb in ends]
+    keys += [(jp.owners[:, s], jp.owners[:, t], jp.blocks[:, s].transpose(1, 2) @ jp.blocks[:, t])
+             for s in (0, 1) for t in (0, 1)]
+    h = _normal_equations(m, keys, free_dofs)
+    grad = torch.zeros(m, 6, dtype=poses.dtype, device=poses.device)
+    grad.index_add_(0, match.src, (weight * r)[:, None] * j_s)
+    grad.index_add_(0, match.dst, (weight * r)[:, None] * j_d)
+    for s in (0, 1):
+        grad.index_add_(0, jp.owners[:, s], (jp.blocks[:, s].transpose(1, 2) @ rp[:, :, None])[:, :, 0])
+    g = grad.reshape(-1).cpu().numpy()[free_dofs]
+    return h, g, cents
 
 
 def _gauss_newton(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: torch.Tensor,
@@ -342,9 +417,11 @@ def _gauss_newton(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: t
     (how a session's chain bends between the places other sessions pin it) is held only by odometry
     and GPS, orders of magnitude softer; a first-order method crawls along those directions (150 L-BFGS
     steps per round left the exact 3×3 map 0.17 m off, 600 steps 0.08 m). The normal equations solve
-    every direction in one step; the region's poses are few (6 per submap), so the dense system is cheap."""
+    every direction in one step. They are block-sparse (a 6×6 block per pair of submaps that overlap or
+    follow each other) and solved sparse (SuperLU): a region of thousands of submaps costs what its
+    overlaps cost."""
     m = len(poses)
-    idx = torch.flatten(torch.nonzero(free.repeat_interleave(6)))
+    free_dofs = np.flatnonzero(free.repeat_interleave(6).cpu().numpy())
     sigma2 = match.sigma ** 2
 
     def objective(p: torch.Tensor) -> torch.Tensor:
@@ -355,34 +432,14 @@ def _gauss_newton(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: t
     value = objective(poses)
     taken = 0
     for _ in range(steps):
-        cents = (poses[:, :3, :3] @ local_cents[:, :, None])[:, :, 0] + poses[:, :3, 3]
-        q_s = transform(poses, match.src, match.p_src)
-        q_d = transform(poses, match.dst, match.p_dst)
-        r = ((q_s - q_d) * match.normal).sum(-1)
-        weight = match.w / (sigma2 + r * r)  # IRLS: the Cauchy loss's curvature at the current residual
-        j_s = torch.cat([match.normal, torch.linalg.cross(q_s - cents[match.src], match.normal)], -1)
-        j_d = -torch.cat([match.normal, torch.linalg.cross(q_d - cents[match.dst], match.normal)], -1)
-        blocks = torch.zeros(m * m, 6, 6, dtype=poses.dtype, device=poses.device)
-        for a, ja in ((match.src, j_s), (match.dst, j_d)):
-            for b, jb in ((match.src, j_s), (match.dst, j_d)):
-                blocks.index_add_(0, a * m + b, weight[:, None, None] * ja[:, :, None] * jb[:, None, :])
-        hess = blocks.reshape(m, m, 6, 6).permute(0, 2, 1, 3).reshape(m * 6, m * 6)
-        grad = torch.zeros(m, 6, dtype=poses.dtype, device=poses.device)
-        grad.index_add_(0, match.src, (weight * r)[:, None] * j_s)
-        grad.index_add_(0, match.dst, (weight * r)[:, None] * j_d)
-        grad = grad.reshape(-1)
-        jp = _prior_jacobian(poses, cents, terms, gps, colour)
-        rp = _prior_residuals(poses, terms, gps).reshape(-1)
-        hess = hess + jp.T @ jp
-        grad = grad + jp.T @ rp
-        h, g = hess[idx][:, idx], grad[idx]
-        diag = torch.diagonal(h).clamp_min(1e-12)
+        h, g, cents = _linearise(poses, match, terms, gps, local_cents, colour, free_dofs)
+        diag = scipy.sparse.diags(np.maximum(h.diagonal(), 1e-12))
         improved = False
         for _ in range(10):
-            step = torch.linalg.solve(h + damping * torch.diag(diag), -g)
-            delta = torch.zeros(m * 6, dtype=poses.dtype, device=poses.device)
-            delta[idx] = step
-            trial = _perturb(poses, cents, delta.reshape(m, 6))
+            step = scipy.sparse.linalg.spsolve((h + damping * diag).tocsc(), -g)
+            delta = np.zeros(m * 6)
+            delta[free_dofs] = step
+            trial = _perturb(poses, cents, torch.tensor(delta.reshape(m, 6), dtype=poses.dtype, device=poses.device))
             new = objective(trial)
             if new < value:
                 improved = True

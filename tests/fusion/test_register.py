@@ -171,7 +171,7 @@ def test_the_odometry_and_gps_jacobian_matches_autograd() -> None:
     cents = torch.tensor(rng.normal(size=(5, 3)) * 10)
     gps = torch.tensor(np.stack([Pose(rng.normal(size=3), rot_z(float(rng.normal()))).matrix() for _ in subs]))
     terms = PoseTerms.of(subs, torch.device("cpu"))
-    got = _prior_jacobian(poses, cents, terms, gps, torch.tensor(_chain_colours(subs)))
+    got = _prior_jacobian(poses, cents, terms, gps, torch.tensor(_chain_colours(subs))).dense(5)
 
     def residuals(xi: torch.Tensor) -> torch.Tensor:
         ps = PoseSet(poses, cents, torch.ones(5, dtype=torch.bool))
@@ -244,3 +244,46 @@ def test_the_polish_after_the_field_registers_what_the_field_left_a_few_decimetr
     assert [round(r["radius_m"], 3) for r in metrics["rounds"]] == [0.75, 0.433, 0.25]
     t, deg = _relative(list(polished().detach().numpy()))
     assert t < 0.02 and deg < 0.1, (t, deg)
+
+
+def test_the_sparse_normal_equations_equal_the_dense_ones_of_autograd_jacobians() -> None:
+    # a region of 3 sessions × 4 submaps (data between neighbours and across sessions, odometry, GPS),
+    # one submap held fixed: the block-sparse JᵀWJ and JᵀWr over the free twists equal the dense matrices
+    # built from autograd Jacobians of the residuals
+    from fusion import se3
+    from fusion.eval.perf_register import synthetic_region
+    from fusion.register import _linearise, _prior_residuals
+
+    poses, match, terms, gps, local_cents, colour = synthetic_region(12, 3, 20, seed=4)
+    local_cents = torch.randn(12, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    free = torch.ones(12, dtype=torch.bool)
+    free[5] = False
+    free_dofs = np.flatnonzero(free.repeat_interleave(6).numpy())
+    h, g, cents = _linearise(poses, match, terms, gps, local_cents, colour, free_dofs)
+
+    c = torch.eye(4, dtype=torch.float64).repeat(12, 1, 1)
+    c[:, :3, 3] = cents
+
+    def moved(xi: torch.Tensor) -> torch.Tensor:
+        return c @ se3.se3_exp(xi.reshape(12, 6)) @ se3.inverse(c) @ poses
+
+    zero = torch.zeros(72, dtype=torch.float64)
+    r = match.residual(poses)
+    weight = match.w / (match.sigma ** 2 + r * r)
+    j_m = torch.autograd.functional.jacobian(lambda xi: match.residual(moved(xi)), zero)
+    j_p = torch.autograd.functional.jacobian(lambda xi: _prior_residuals(moved(xi), terms, gps).reshape(-1), zero)
+    dense = j_m.T @ (weight[:, None] * j_m) + j_p.T @ j_p
+    grad = j_m.T @ (weight * r) + j_p.T @ _prior_residuals(poses, terms, gps).reshape(-1)
+    assert h.shape == (66, 66) and h.nnz < 66 * 66
+    np.testing.assert_allclose(h.toarray(), dense[free_dofs][:, free_dofs].numpy(), rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(g, grad[free_dofs].numpy(), rtol=1e-5, atol=1e-4)
+
+
+def test_the_solver_scaling_benchmark_aligns_its_synthetic_region() -> None:
+    from fusion.eval.perf_register import run
+
+    lines: list[str] = []
+    (row,) = run([30], sessions=3, matches=30, steps=3, out=lines.append)
+    assert row["submaps"] == 30 and row["steps"] >= 1
+    assert row["final_rms_m"] < 0.1 * row["start_rms_m"]
+    assert lines and "s/step" in lines[0]
