@@ -126,6 +126,9 @@ class FusionConfig:
     # overlaps hold it. Start poses, 3x3 exact bench seed 0, with fine_noise_max_gain 20: 0.104 -> 0.071 m; but
     # fused camera seed 0 geo F 0.801 -> 0.746 (monocular submaps of one session share their biases): off
     fine_same_session: bool = False
+    # with fine_same_session: ground-like samples (normal within ~45° of up) match the own session too (off:
+    # only walls, poles and other upright surfaces do)
+    fine_same_session_ground: bool = True
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)

@@ -147,7 +147,10 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     # samples match only other sessions' unless fine_same_session: a session's consecutive submaps overlap
     # and agree wherever the session is, so their samples were often the nearest and diluted the matches
     # that move it; within a session odometry rules
-    group = np.arange(len(subs)) if config.fine_same_session else of
+    group = np.arange(len(subs)) if config.fine_same_session and config.fine_same_session_ground else of
+    # fine_same_session without the ground: upright samples may match their own session's other submaps
+    within = (np.abs(nrm[:, 2]) < UPRIGHT_NZ) if config.fine_same_session and not config.fine_same_session_ground \
+        else None
     gauss_newton = config.fine_solver == "gn"
     if not gauss_newton:  # the L-BFGS path's parameters: a pose per submap, one more rigid one per session
         poses = PoseSet(torch.tensor(np.stack(start)), torch.tensor(centroids),
@@ -182,7 +185,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             now = current if gauss_newton else posed_now()
             posed = transform(now, own_t, pts_t).cpu().numpy()
             posed_n = (now[own_t][:, :3, :3] @ nrm_t[:, :, None])[:, :, 0].cpu().numpy()
-        src, dst = _correspondences(posed, posed_n, own, float(radius), config.fine_normal_dot, group)
+        src, dst = _correspondences(posed, posed_n, own, float(radius), config.fine_normal_dot, group, within)
         if len(src) == 0:
             rounds.append({"radius_m": float(radius), "matches": 0})
             continue
@@ -457,10 +460,11 @@ def _gauss_newton(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: t
 
 
 def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, radius: float, min_dot: float,
-                     group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     group: np.ndarray | None = None, within: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(source, target) sample indices: each sample's nearest sample of another submap within ``radius``
     whose normal agrees with its own (dot ≥ ``min_dot``; none: unmatched), never of a submap in the same
-    ``group`` (per submap index; default: each its own, i.e. only the own submap). One k-d tree per submap, each
+    ``group`` (per submap index; default: each its own, i.e. only the own submap) unless the sample is one of
+    ``within`` (per sample, bool: these match the other submaps of their group too). One k-d tree per submap, each
     sample queried against the submaps whose boxes (grown by ``radius``) overlap its own: linear in the
     overlaps, not quadratic in the region's submaps; a single tree over all samples would let a submap's
     own samples, denser nearby, hide the others'."""
@@ -476,10 +480,15 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
         best_d = np.full(len(mine), np.inf)
         best_j = np.full(len(mine), -1)
         for j in ids:
-            if j == i or (group is not None and group[j] == group[i]) or np.any(lo[j] > hi[i]) or np.any(hi[j] < lo[i]):
+            if j == i or np.any(lo[j] > hi[i]) or np.any(hi[j] < lo[i]):
                 continue
+            query = np.ones(len(mine), bool)
+            if group is not None and group[j] == group[i]:
+                if within is None:
+                    continue
+                query = within[mine]
             dist, idx = trees[j].query(posed[mine], k=k, distance_upper_bound=radius)
-            valid = np.isfinite(dist)
+            valid = np.isfinite(dist) & query[:, None]
             cand = members[j][np.where(valid, idx, 0)]
             valid &= np.einsum("nkd,nd->nk", normals[cand], normals[mine]) >= min_dot
             d = np.where(valid, dist, np.inf)

@@ -304,6 +304,7 @@ COMPONENTS: tuple[str, ...] = (
     "fine_register=false",  # joint point-to-plane registration of every submap (fusion.register)
     "fine_solver=lbfgs",  # ... solved by L-BFGS (150 steps per round), not Levenberg-Marquardt
     "fine_same_session=true",  # ... matching samples to the own session's submaps too
+    "fine_same_session=true,fine_same_session_ground=false",  # ... its upright surfaces only
     "fine_noise_max_gain=1",  # ... the data's weight not raised where their residuals are tight
     "fine_polish_rounds=0",  # ... not run once more after the field alignment
     "fine_normal_balance=0",  # ... samples by area, not spread over the directions vertical faces face

@@ -101,6 +101,19 @@ def test_correspondences_skip_the_own_submap_and_disagreeing_normals() -> None:
     assert pairs[1] == 3 and pairs[2] == 0 and pairs[3] == 1  # never a point of its own submap
 
 
+def test_correspondences_within_a_group_only_for_the_samples_let_through() -> None:
+    # the same four samples, both submaps of one session (group 0): none match; with the wall samples
+    # let through (own-session matches on upright surfaces only), exactly the walls pair up
+    posed = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.05], [0.0, 0.0, 0.1], [0.02, 0.0, 0.0]])
+    normals = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, 0, 1.0], [1.0, 0, 0]])
+    owner, group = np.array([0, 0, 1, 1]), np.array([0, 0])
+    src, _ = _correspondences(posed, normals, owner, radius=0.5, min_dot=0.7, group=group)
+    assert len(src) == 0
+    walls = np.abs(normals[:, 2]) < 0.7
+    src, dst = _correspondences(posed, normals, owner, radius=0.5, min_dot=0.7, group=group, within=walls)
+    assert dict(zip(src.tolist(), dst.tolist(), strict=True)) == {1: 3, 3: 1}
+
+
 def test_the_alignment_start_runs_it_after_the_coarse_stage_and_the_switch_turns_it_off() -> None:
     from fusion.align import start_poses
 
