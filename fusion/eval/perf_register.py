@@ -96,7 +96,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--matches", type=int, default=100, help="matches per overlapping submap pair (default 100)")
     p.add_argument("--steps", type=int, default=3, help="Levenberg-Marquardt steps per size (default 3)")
     args = p.parse_args(argv)
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     try:
         sizes = [int(v) for v in args.submaps.split(",") if v]
     except ValueError:
