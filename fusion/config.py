@@ -229,6 +229,9 @@ class FusionConfig:
     # 1 m (2026-12-03, camera seeds 0/1/2) kept no more vehicles (F 0.15/0.06/0.00 vs 0.13/0.06/0.00): the cars
     # lost are those one session alone saw, not ones the sessions' depth errors put apart. Removed again.
     consensus_movable_sessions: int = 2
+    # ... asked only where that many sessions were there (any surface within this, m; 0: wherever the tile holds
+    # that many sessions): a car parked on a street one session alone drove is kept, nothing says it was gone
+    consensus_movable_cover_m: float = 0.0
     consensus_movable: tuple[str, ...] = ("vehicle", "obstacle")
     consensus_at: tuple[float, ...] = (0.4, 0.7)  # fractions of training at which targets are recomputed
     pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
@@ -260,6 +263,8 @@ class FusionConfig:
             raise ValueError(f"consensus_evidence must be one of {CONSENSUS_EVIDENCE}, got {self.consensus_evidence!r}")
         if self.fine_solver not in FINE_SOLVERS:
             raise ValueError(f"fine_solver must be one of {FINE_SOLVERS}, got {self.fine_solver!r}")
+        if self.consensus_movable_cover_m < 0:
+            raise ValueError(f"consensus_movable_cover_m must be >= 0 (0: off), got {self.consensus_movable_cover_m}")
         unknown = [name for name in self.consensus_movable if name not in LABEL_BY_NAME]
         if unknown:
             raise ValueError(f"consensus_movable names unknown labels: {', '.join(unknown)}")

@@ -145,7 +145,8 @@ def set_consensus(problem: TileProblem, poses_tile: torch.Tensor, config: Fusion
     pool.conf_target = consensus_targets(points, session, config.consensus_radius_m, config.consensus_cover_m,
                                          keep_fraction=config.consensus_keep, c_th=config.c_th, normals=normals,
                                          column_m=config.consensus_column_m, movable=movable,
-                                         movable_sessions=config.consensus_movable_sessions)
+                                         movable_sessions=config.consensus_movable_sessions,
+                                         movable_cover_m=config.consensus_movable_cover_m)
 
 
 def active_levels(it: int, config: FusionConfig) -> int:

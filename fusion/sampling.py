@@ -224,6 +224,7 @@ def consensus_targets(
     pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27,
     keep_fraction: float | None = None, c_th: float = 0.7, normals: Tensor | None = None,
     column_m: float = 3.0, movable: Tensor | None = None, movable_sessions: int = 0,
+    movable_cover_m: float = 0.0,
 ) -> Tensor:
     """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
     with evidence about this surface that saw it (had a point within ~``near_m``).
@@ -245,7 +246,10 @@ def consensus_targets(
     gets 0, evidence or not. A car parked on a street that only one session drove has no session that saw
     through it, so the free-space rule keeps it; this rule asks a movable object for a second witness.
     A static car two sessions passed stays; with fewer sessions in the tile than that, nothing is asked.
-    A witness is any surface of the session within ~``near_m``.
+    A witness is any surface of the session within ~``near_m``. ``movable_cover_m`` > 0: the second witness
+    is asked for only where at least ``movable_sessions`` sessions were there (had any surface within
+    ~``movable_cover_m``): a car parked on a street that one session alone drove is kept, as nothing says
+    it was not there; where another session passed and did not see it, it is dropped.
 
     "Within r" is decided on occupancy grids (cells of r/2, r/4 for the cover), dilated by r with
     shifted ORs along each axis: a cube of half-width r up to one cell, not a ball. That is O(P + cells) per
@@ -266,7 +270,11 @@ def consensus_targets(
         against += hit_e & ~hit_n
     fraction = (near / (near + against).clamp(min=1)).float()
     if movable is not None and 1 < movable_sessions <= len(near_hit):
-        fraction = torch.where(movable & (near < movable_sessions), torch.zeros_like(fraction), fraction)
+        ask = movable & (near < movable_sessions)
+        if movable_cover_m > 0:
+            present = sum(h.int() for h in _within(pool_tile, pool_session, movable_cover_m, 2, max_cells))
+            ask &= present >= movable_sessions
+        fraction = torch.where(ask, torch.zeros_like(fraction), fraction)
     return fraction if keep_fraction is None else calibrated_confidence(fraction, keep_fraction, c_th)
 
 

@@ -123,6 +123,45 @@ def test_a_movable_object_needs_a_second_witness_where_no_session_saw_through_it
                              movable_sessions=2).min() == 1.0
 
 
+def test_a_second_witness_is_asked_only_where_a_second_session_was_there() -> None:
+    """``movable_cover_m``: session 0 drove street A and street B, session 1 street A only. A car on street B
+    (only session 0 within 5 m) is kept; a car on street A that session 1 passed within 5 m without seeing it
+    (its road has a hole under the car: no free-space evidence) is dropped; a car both saw stays. Without
+    the cover radius the street-B car is dropped too (the tile holds two sessions)."""
+    rng = np.random.default_rng(7)
+    pts, sess, mov = [], [], []
+
+    def add(p: np.ndarray, s: int, movable: bool = False) -> None:
+        pts.append(p)
+        sess.append(np.full(len(p), s))
+        mov.append(np.full(len(p), movable))
+
+    add(_plane(rng, (0, 40), (0, 8), 0.0, 3000), 0)  # street A
+    road_1 = _plane(rng, (0, 40), (0, 8), 0.0, 3000)
+    add(road_1[~((road_1[:, 0] > 28) & (road_1[:, 0] < 36) & (road_1[:, 1] < 6))], 1)  # a hole under car 2
+    for s in (0, 1):
+        add(_plane(rng, (10, 14), (2, 4), 1.6, 300), s, movable=True)  # car 1: both saw it
+    add(_plane(rng, (30, 34), (2, 4), 1.6, 300), 0, movable=True)  # car 2: session 0 only
+    add(_plane(rng, (0, 40), (30, 38), 0.0, 3000), 0)  # street B, session 0 alone
+    add(_plane(rng, (20, 24), (32, 34), 1.6, 300), 0, movable=True)  # car 3
+    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
+    s = torch.tensor(np.concatenate(sess))
+    m = torch.tensor(np.concatenate(mov))
+    n = torch.tensor([0.0, 0.0, 1.0]).expand(len(p), 3)
+    car1 = m & (p[:, 0] < 20) & (p[:, 1] < 10)
+    car2 = m & (p[:, 0] > 20) & (p[:, 1] < 10)
+    car3 = m & (p[:, 1] > 10)
+    assert int(car1.sum()) == 600 and int(car2.sum()) == 300 and int(car3.sum()) == 300
+
+    assert consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0).min() == 1.0  # free space drops none
+    covered = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, movable=m, movable_sessions=2,
+                                movable_cover_m=5.0)
+    assert covered[car1].min() == 1.0 and covered[car3].min() == 1.0 and covered[~m].min() == 1.0
+    assert covered[car2].max() == 0.0
+    anywhere = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, movable=m, movable_sessions=2)
+    assert anywhere[car2].max() == 0.0 and anywhere[car3].max() == 0.0 and anywhere[car1].min() == 1.0
+
+
 def test_a_witness_is_a_surface_within_the_consensus_radius() -> None:
     """Two sessions saw the flank of one parked car 0.9 m apart (depth error along the viewing ray) and the car
     at 0.3 m; session 0 alone saw a third car on a street it drove alone. A witness is a surface within the 0.5 m
