@@ -233,6 +233,11 @@ class FusionConfig:
     # that many sessions): a car parked on a street one session alone drove is kept, nothing says it was gone
     consensus_movable_cover_m: float = 0.0
     consensus_movable: tuple[str, ...] = ("vehicle", "obstacle")
+    # minimum thickness (reconstruction only): surface samples of thin upright classes sit this far out along
+    # their normal, so a pole, sign plate or fence thinner than ~2 of the finest cells keeps a negative
+    # interior the field and the extraction lattice can hold, instead of vanishing (0: off)
+    thin_inflate_m: float = 0.0
+    thin_classes: tuple[str, ...] = ("pole", "traffic_sign", "fence")
     consensus_at: tuple[float, ...] = (0.4, 0.7)  # fractions of training at which targets are recomputed
     pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
     class_balance: float = 0.5  # pool faces weighted by area × (mean class share / class share)^this
@@ -265,11 +270,18 @@ class FusionConfig:
             raise ValueError(f"fine_solver must be one of {FINE_SOLVERS}, got {self.fine_solver!r}")
         if self.consensus_movable_cover_m < 0:
             raise ValueError(f"consensus_movable_cover_m must be >= 0 (0: off), got {self.consensus_movable_cover_m}")
-        unknown = [name for name in self.consensus_movable if name not in LABEL_BY_NAME]
-        if unknown:
-            raise ValueError(f"consensus_movable names unknown labels: {', '.join(unknown)}")
+        if self.thin_inflate_m < 0:
+            raise ValueError(f"thin_inflate_m must be >= 0 (0: off), got {self.thin_inflate_m}")
+        for option in ("consensus_movable", "thin_classes"):
+            unknown = [name for name in getattr(self, option) if name not in LABEL_BY_NAME]
+            if unknown:
+                raise ValueError(f"{option} names unknown labels: {', '.join(unknown)}")
         if self.lod_start_levels > self.num_levels:
             raise ValueError("lod_start_levels must not exceed num_levels")
+
+    def thin_label_ids(self) -> list[int]:
+        """Label ids of ``thin_classes``."""
+        return [LABEL_BY_NAME[name].id for name in self.thin_classes]
 
     def movable_label_ids(self) -> list[int]:
         """Label ids of ``consensus_movable``."""

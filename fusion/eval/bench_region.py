@@ -315,6 +315,7 @@ COMPONENTS: tuple[str, ...] = (
     "consensus_evidence=cover",  # ... counting every session near a surface, not only those that saw through it
     "consensus_movable_sessions=0",  # ... vehicles and obstacles kept without a second session's witness
     "consensus_movable_cover_m=5",  # ... a second witness asked only where a second session was within 5 m
+    "thin_inflate_m=0.1",  # poles, sign plates and fences reconstructed 0.1 m thicker on each side
     "recon_warm_fraction=0",  # reconstruction from scratch, not from the alignment's field
     "extract_support_m=0",  # no surface farther than 1 m from every posed input point
     "face_labels=vote",  # face labels voted by the posed input points near each face

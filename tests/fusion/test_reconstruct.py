@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
+from scipy.spatial import cKDTree
 
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
-from fusion.reconstruct import reconstruct_tile
-from fusion.types import Pose, ProgressEvent, TileSpec
+from fusion.reconstruct import inflate_thin_surfaces, reconstruct_tile
+from fusion.types import Pose, ProgressEvent, SemanticMesh, SubmapInput, TileSpec
 from tests.scene import tiny_config, two_sessions
 
 TILE = TileSpec(0, 0, 16.0)
@@ -125,3 +127,45 @@ def test_gps_prior_anchors_to_the_gps_fix_not_the_starting_pose() -> None:
     # without a separate fix the prior anchors to the starting pose (first fusion: GPS)
     plain = build_problem([replace(s, pose_gps=None) for s in refused], TILE, cfg, torch.device("cpu"))
     assert np.allclose(plain.init_tile.numpy(), start)
+
+
+def _thin_fence_street() -> list[SubmapInput]:
+    """The street of ``two_sessions`` (both at the true pose) with a 0.1 m thick, 2 m high fence (label 6)
+    along x at y = 3: thinner than half of ``tiny_config``'s finest cells (~0.25 m)."""
+    subs, _ = two_sessions(offset=(0.0, 0.0, 0.0))
+    fence = trimesh.creation.box(extents=(8.0, 0.1, 2.0)).subdivide().subdivide().subdivide()
+    fence.apply_translation((8.0, 3.0, 1.0))
+    out = []
+    for s in subs:
+        m = s.mesh
+        n = len(m.vertices)
+        mesh = SemanticMesh(np.concatenate([m.vertices, fence.vertices]),
+                            np.concatenate([m.faces, np.asarray(fence.faces) + n]),
+                            np.concatenate([m.face_labels, np.full(len(fence.faces), 6)]))
+        out.append(SubmapInput(s.id, s.session_id, s.seq, mesh, Pose.identity(), Pose.identity(), s.gps_sigma))
+    return out
+
+
+def test_inflate_thin_surfaces_moves_thin_classes_out_along_their_normals() -> None:
+    pts = np.zeros((3, 3))
+    nrm = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    out = inflate_thin_surfaces(pts, nrm, np.array([6, 1, 7]), [6, 7], 0.1)
+    assert np.allclose(out, [[0.0, 0.1, 0.0], [0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    assert np.all(pts == 0)  # the input is not changed
+
+
+def test_a_fence_thinner_than_the_cells_survives_when_inflated() -> None:
+    subs = _thin_fence_street()
+    cfg = tiny_config(iterations=120, consensus=False, c_th=0.5, thin_classes=("fence",))
+    fence_truth = np.stack(np.meshgrid(np.linspace(4.5, 11.5, 15), [2.95, 3.05], np.linspace(0.3, 1.8, 6)),
+                           -1).reshape(-1, 3)
+
+    def fence_recall(inflate_m: float) -> float:
+        mesh = reconstruct_tile(subs, TILE, cfg.with_(thin_inflate_m=inflate_m)).mesh
+        sel = mesh.face_labels == 6
+        centres = mesh.vertices[mesh.faces[sel]].mean(axis=1) if sel.any() else np.full((1, 3), 1e9)
+        dist, _ = cKDTree(centres).query(fence_truth)
+        return float(np.mean(dist <= 0.3))
+
+    plain, inflated = fence_recall(0.0), fence_recall(0.15)
+    assert inflated >= 0.8 and inflated > plain + 0.2, (plain, inflated)
