@@ -161,11 +161,16 @@ def test_a_fence_thinner_than_the_cells_survives_when_inflated() -> None:
                            -1).reshape(-1, 3)
 
     def fence_recall(inflate_m: float) -> float:
-        mesh = reconstruct_tile(subs, TILE, cfg.with_(thin_inflate_m=inflate_m)).mesh
-        sel = mesh.face_labels == 6
-        centres = mesh.vertices[mesh.faces[sel]].mean(axis=1) if sel.any() else np.full((1, 3), 1e9)
-        dist, _ = cKDTree(centres).query(fence_truth)
-        return float(np.mean(dist <= 0.3))
+        """Share of the fence's truth with a fence face within 0.3 m, over three training seeds: what is left
+        of the plain fence varies with the seed (0.50-0.81 of it on one machine), the inflated one does not."""
+        recall = []
+        for seed in (0, 1, 2):
+            mesh = reconstruct_tile(subs, TILE, cfg.with_(thin_inflate_m=inflate_m, seed=seed)).mesh
+            sel = mesh.face_labels == 6
+            centres = mesh.vertices[mesh.faces[sel]].mean(axis=1) if sel.any() else np.full((1, 3), 1e9)
+            dist, _ = cKDTree(centres).query(fence_truth)
+            recall.append(float(np.mean(dist <= 0.3)))
+        return float(np.mean(recall))
 
-    plain, inflated = fence_recall(0.0), fence_recall(0.15)
-    assert inflated >= 0.8 and inflated > plain + 0.2, (plain, inflated)
+    plain, inflated = fence_recall(0.0), fence_recall(0.15)  # one machine: 0.69 and 1.00
+    assert inflated >= 0.9 and inflated > plain + 0.2, (plain, inflated)
