@@ -221,7 +221,9 @@ def reconstruct_tile(
         "iterations": config.iterations,
         "content": content,
         "duration_s": time.perf_counter() - t_start,
-        "cpu_s": time.process_time() - cpu_start,  # every thread of the process: less sensitive to a shared machine
+        # CPU seconds of every thread of the process (other work running in it meanwhile counts too): on a shared
+        # machine less inflated by the load than duration_s
+        "cpu_s": time.process_time() - cpu_start,
         "duration_train_s": train_s,
         "duration_extract_s": extract_s,
         "points_per_s": evaluated / max(train_s, 1e-9),
