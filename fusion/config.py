@@ -218,6 +218,9 @@ class FusionConfig:
     # -> 0.764/0.236/31.2 %; exact seed 0 0.933/0.708/36.6 % -> 0.962/0.733/35.5 % (consensus off: 0.963/0.723/53.2 %)
     consensus_evidence: str = "free_space"
     consensus_column_m: float = 3.0
+    # free-space evidence ignores a surface whose own session saw open ground this far beneath it (0: off):
+    # sign plates and tree crowns, under which the other sessions' rays passed (fusion.sampling._overhangs)
+    consensus_overhang_m: float = 0.0
     # consensus fraction mapped to c_th (kept from here up): 2 of 3 and 3 of 5 observing sessions keep a surface
     # (the raw fraction dropped both), 1 of 2, 1 of 3 and 2 of 5 do not. With 2 sessions a surface one of them
     # missed (a hole, its field of view's edge) cannot be told from a parked car the other saw: dropped. 2x2
@@ -275,6 +278,8 @@ class FusionConfig:
             raise ValueError(f"fine_solver must be one of {FINE_SOLVERS}, got {self.fine_solver!r}")
         if self.consensus_movable_cover_m < 0:
             raise ValueError(f"consensus_movable_cover_m must be >= 0 (0: off), got {self.consensus_movable_cover_m}")
+        if self.consensus_overhang_m < 0:
+            raise ValueError(f"consensus_overhang_m must be >= 0 (0: off), got {self.consensus_overhang_m}")
         if self.thin_inflate_m < 0:
             raise ValueError(f"thin_inflate_m must be >= 0 (0: off), got {self.thin_inflate_m}")
         for option in ("consensus_movable", "thin_classes"):

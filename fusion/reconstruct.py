@@ -165,7 +165,8 @@ def set_consensus(problem: TileProblem, poses_tile: torch.Tensor, config: Fusion
                                          keep_fraction=config.consensus_keep, c_th=config.c_th, normals=normals,
                                          column_m=config.consensus_column_m, movable=movable,
                                          movable_sessions=config.consensus_movable_sessions,
-                                         movable_cover_m=config.consensus_movable_cover_m)
+                                         movable_cover_m=config.consensus_movable_cover_m,
+                                         overhang_m=config.consensus_overhang_m)
 
 
 def active_levels(it: int, config: FusionConfig) -> int:

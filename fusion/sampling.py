@@ -8,6 +8,7 @@ the SDF loss differentiates through the pose.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -224,7 +225,7 @@ def consensus_targets(
     pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27,
     keep_fraction: float | None = None, c_th: float = 0.7, normals: Tensor | None = None,
     column_m: float = 3.0, movable: Tensor | None = None, movable_sessions: int = 0,
-    movable_cover_m: float = 0.0,
+    movable_cover_m: float = 0.0, overhang_m: float = 0.0,
 ) -> Tensor:
     """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
     with evidence about this surface that saw it (had a point within ~``near_m``).
@@ -239,7 +240,9 @@ def consensus_targets(
     by ``near_m``) is an upward-facing surface, with nothing of its own in between. A parked car one
     session saw stands where the others saw bare road: dropped. The upper wall a session did not see
     stands above its lower wall (not upward-facing): no evidence, kept. A session that saw nothing there
-    (another street, a hole) has no say either way.
+    (another street, a hole) has no say either way. ``overhang_m`` > 0: nor does any session about a
+    surface whose observer saw open ground at least that far beneath it (``_overhangs``: a sign plate or a
+    tree crown, under which the others' rays passed).
 
     ``movable`` (P,) bool marks points of movable classes (vehicles, obstacles): where the pool holds at
     least ``movable_sessions`` sessions, such a point that fewer than ``movable_sessions`` of them saw
@@ -264,7 +267,7 @@ def consensus_targets(
     if normals is None:
         evidence = _within(pool_tile, pool_session, cover_m, 4, max_cells)
     else:
-        evidence = _seen_through(pool_tile, normals, pool_session, near_m, column_m, max_cells)
+        evidence = _seen_through(pool_tile, normals, pool_session, near_m, column_m, max_cells, overhang_m)
     for hit_n, hit_e in zip(near_hit, evidence, strict=True):
         near += hit_n
         against += hit_e & ~hit_n
@@ -282,21 +285,27 @@ UPWARD_MIN_NZ = 0.7  # a surface faces up (ground, a roof, a table) when its nor
 
 
 def _seen_through(points: Tensor, normals: Tensor, session: Tensor, near_m: float, column_m: float,
-                  max_cells: int) -> list[Tensor]:
+                  max_cells: int, overhang_m: float = 0.0) -> list[Tensor]:
     """Per session: (P,) bool, whether the first surface the session has below each point (more than
-    ``near_m`` and at most ``column_m`` down, columns grown by ``near_m`` in x and y) faces up."""
+    ``near_m`` and at most ``column_m`` down, columns grown by ``near_m`` in x and y) faces up.
+
+    ``overhang_m`` > 0: no session saw through a point that overhangs (``_overhangs``) by at least this."""
     cell, dims, idx = _cells(points, near_m / 2, max_cells)
     k = max(1, round(near_m / cell))
     deepest = int(column_m / cell + 1e-6)
     flat_xy = idx[:, 0] * dims[1] + idx[:, 1]
     up = normals[:, 2] >= UPWARD_MIN_NZ
     out = []
+    overhang = torch.zeros(len(points), dtype=torch.bool, device=points.device)
     for s in torch.unique(session):
         mine = session == s
         any_grid = torch.zeros(dims, dtype=torch.bool, device=points.device)
         up_grid = torch.zeros_like(any_grid)
         any_grid[idx[mine, 0], idx[mine, 1], idx[mine, 2]] = True
         up_grid[idx[mine & up, 0], idx[mine & up, 1], idx[mine & up, 2]] = True
+        if overhang_m > 0:
+            overhang[mine] = _overhangs(idx[mine], any_grid, up_grid, int(math.ceil(overhang_m / cell - 1e-6)),
+                                        deepest)
         any_col = _dilate(any_grid, k, (0, 1)).view(-1, dims[2])
         up_col = _dilate(up_grid, k, (0, 1)).view(-1, dims[2])
         decided = torch.zeros(len(points), dtype=torch.bool, device=points.device)
@@ -309,7 +318,37 @@ def _seen_through(points: Tensor, normals: Tensor, session: Tensor, near_m: floa
             through |= hit & up_col[flat_xy, zc]
             decided |= hit
         out.append(through)
-    return out
+    return [t & ~overhang for t in out]
+
+
+def _overhangs(idx: Tensor, any_grid: Tensor, up_grid: Tensor, gap_cells: int, deepest: int) -> Tensor:
+    """(n,) bool for one session's points (cells ``idx`` (n, 3) of its occupancy grids): straight below the
+    point's own surface (the occupied cells down from it) a clear gap of at least ``gap_cells`` cells, then
+    an upward-facing surface of the session (within one cell across, sampling leaves cells empty), within
+    ``deepest`` cells. The session saw open ground under it: a sign plate, a tree crown, a balcony. Another
+    session that saw that ground did not see through it (its rays passed under it), so that is no evidence
+    against it. A car or a wall standing on the ground reaches down to it (no gap) and stays open to the
+    free-space evidence; so does a car's roof, whose observer could not see the road beneath it (up to a
+    band one cell wide along the roof's edge)."""
+    col = any_grid.view(-1, any_grid.shape[2])
+    up_col = _dilate(up_grid, 1, (0, 1)).view(-1, up_grid.shape[2])
+    flat = idx[:, 0] * any_grid.shape[1] + idx[:, 1]
+    own = torch.ones(len(idx), dtype=torch.bool, device=idx.device)  # still on the point's own surface
+    gap = torch.zeros(len(idx), dtype=torch.long, device=idx.device)
+    decided = torch.zeros_like(own)
+    result = torch.zeros_like(own)
+    for d in range(1, deepest + 1):
+        z = idx[:, 2] - d
+        live = (z >= 0) & ~decided
+        zc = z.clamp(min=0)
+        occ = col[flat, zc]
+        own &= occ
+        below = live & ~own
+        ground = below & up_col[flat, zc]
+        result |= ground & (gap >= gap_cells)
+        decided |= ground | (below & occ)  # the ground, or something else under the gap (a post, a second object)
+        gap += (below & ~occ & ~ground).long()
+    return result
 
 
 def _cells(points: Tensor, cell: float, max_cells: int) -> tuple[float, list[int], Tensor]:

@@ -14,6 +14,32 @@ def _plane(rng: np.random.Generator, x: tuple[float, float], y: tuple[float, flo
     return np.column_stack([rng.uniform(*x, n), rng.uniform(*y, n), np.full(n, z)])
 
 
+class _Scene:
+    """Pool points of several sessions, added piece by piece: their positions, posed normals, sessions and
+    whether they are of a movable class."""
+
+    def __init__(self) -> None:
+        self.pts: list[np.ndarray] = []
+        self.nrm: list[np.ndarray] = []
+        self.sess: list[np.ndarray] = []
+        self.mov: list[np.ndarray] = []
+
+    def add(self, p: np.ndarray, n: tuple[float, float, float], s: int, movable: bool = False) -> None:
+        self.pts.append(p)
+        self.nrm.append(np.tile(n, (len(p), 1)))
+        self.sess.append(np.full(len(p), s))
+        self.mov.append(np.full(len(p), movable))
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self.pts)
+
+    def tensors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(points, normals, sessions, movable)."""
+        return (torch.tensor(np.concatenate(self.pts), dtype=torch.float32),
+                torch.tensor(np.concatenate(self.nrm), dtype=torch.float32),
+                torch.tensor(np.concatenate(self.sess)), torch.tensor(np.concatenate(self.mov)))
+
+
 def test_consensus_separates_transients_from_the_static_world() -> None:
     rng = np.random.default_rng(0)
     pts, sess = [], []
@@ -48,13 +74,8 @@ def test_free_space_evidence_counts_only_the_sessions_that_saw_through_a_surface
     the wall down (covering sessions missed it); free-space evidence keeps all of it (nobody saw through
     it) and still drops the car."""
     rng = np.random.default_rng(3)
-    pts, nrm, sess = [], [], []
-
-    def add(p: np.ndarray, n: tuple[float, float, float], s: int) -> None:
-        pts.append(p)
-        nrm.append(np.tile(n, (len(p), 1)))
-        sess.append(np.full(len(p), s))
-
+    scene = _Scene()
+    add = scene.add
     for s in range(5):
         add(_plane(rng, (0, 40), (0, 8 if s < 3 else 6), 0.0, 4000), (0, 0, 1), s)
     car_top = _plane(rng, (10, 14), (2, 4), 1.6, 300)
@@ -64,9 +85,7 @@ def test_free_space_evidence_counts_only_the_sessions_that_saw_through_a_surface
     wall_top = 6.0
     for s, top in ((0, wall_top), (1, 2.0), (2, 2.0)):
         add(np.column_stack([rng.uniform(0, 40, 3000), np.full(3000, 8.0), rng.uniform(0, top, 3000)]), (0, -1, 0), s)
-    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
-    n = torch.tensor(np.concatenate(nrm), dtype=torch.float32)
-    s = torch.tensor(np.concatenate(sess))
+    p, n, s, _ = scene.tensors()
     n_road = 5 * 4000
     car = slice(n_road, n_road + 600)
     wall0 = slice(n_road + 600, n_road + 3600)
@@ -84,30 +103,63 @@ def test_free_space_evidence_counts_only_the_sessions_that_saw_through_a_surface
     assert consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=0.1).min() == 1.0
 
 
+def test_what_overhangs_open_ground_is_not_seen_through() -> None:
+    """Five sessions on one street. Session 0 alone saw a sign plate 2.2-2.8 m up beside its post, and the
+    road beneath it (its rays passed under the plate, as the others' did), and a parked car: its roof, the
+    side facing the street and its two ends reaching down to 0.25 m above the road, and no road under or
+    behind it. The others saw bare road there. Plain free-space evidence drops the plate with the car; with
+    ``overhang_m`` the plate keeps its 1 (its observer saw open ground 2 m under it) and the car is still
+    dropped: its observer saw no ground under it, and its sides reach down to the road. Only a band of the
+    roof along its edges, where the observer's road lies within a cell of a column that holds no point of
+    the car's sides (sampling), passes for an overhang."""
+    rng = np.random.default_rng(11)
+    scene = _Scene()
+    add = scene.add
+    road0 = _plane(rng, (0, 40), (0, 8), 0.0, 8000)
+    add(road0[~((road0[:, 0] > 10) & (road0[:, 0] < 14) & (road0[:, 1] > 2))], (0, 0, 1), 0)  # the car's shadow
+    for s in range(1, 5):
+        add(_plane(rng, (0, 40), (0, 8), 0.0, 4000), (0, 0, 1), s)
+    n_before = len(scene)
+    plate = np.column_stack([rng.uniform(25, 25.8, 300), np.full(300, 6.0), rng.uniform(2.2, 2.8, 300)])
+    add(plate, (0, -1, 0), 0)
+    add(np.column_stack([np.full(100, 25.4), np.full(100, 6.05), rng.uniform(0, 2.2, 100)]), (0, -1, 0), 0)  # post
+    add(_plane(rng, (10, 14), (2, 4), 1.6, 300), (0, 0, 1), 0)  # the car
+    add(np.column_stack([rng.uniform(10, 14, 300), np.full(300, 2.0), rng.uniform(0.25, 1.6, 300)]), (0, -1, 0), 0)
+    for x, nx in ((10.0, -1.0), (14.0, 1.0)):
+        add(np.column_stack([np.full(150, x), rng.uniform(2, 4, 150), rng.uniform(0.25, 1.6, 150)]), (nx, 0, 0), 0)
+    p, n, s, _ = scene.tensors()
+    plate_i = slice(n_before, n_before + 300)
+    car = torch.zeros(len(p), dtype=torch.bool)
+    car[n_before + 400:] = True
+    car &= p[:, 2] > 0.8  # the lowest 0.75 m of the sides: no session has evidence that close to the road
+    x, y = p[:, 0], p[:, 1]
+    rim = car & (p[:, 2] > 1.55) & ((x < 10.5) | (x > 13.5) | (y < 2.5) | (y > 3.5))
+
+    plain = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0)
+    over = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, overhang_m=1.0)
+    assert float(plain[plate_i].mean()) < 0.5  # four sessions "saw through" it to the road
+    assert over[plate_i].min() == 1.0
+    assert plain[car].max() <= 0.2 + 1e-6 and over[car & ~rim].max() <= 0.2 + 1e-6
+    assert float((over[rim] > 0.2).float().mean()) < 0.5
+    # a gap asked for wider than the 2.2 m of open ground under the plate: not an overhang
+    assert float(consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, overhang_m=2.5)[plate_i].mean()) < 0.5
+
+
 def test_a_movable_object_needs_a_second_witness_where_no_session_saw_through_it() -> None:
     """Three sessions; two drove street A, one drove street B alone and saw a parked car there. Nobody saw
     through that car (free-space evidence keeps it at 1); as a movable class it has one witness: 0. The car
     both street-A sessions saw, and street B's road and wall, stay at 1. With one session in the pool, or
     the rule off (``movable_sessions`` 1), the lone car keeps its 1."""
     rng = np.random.default_rng(5)
-    pts, nrm, sess, mov = [], [], [], []
-
-    def add(p: np.ndarray, n: tuple[float, float, float], s: int, movable: bool = False) -> None:
-        pts.append(p)
-        nrm.append(np.tile(n, (len(p), 1)))
-        sess.append(np.full(len(p), s))
-        mov.append(np.full(len(p), movable))
-
+    scene = _Scene()
+    add = scene.add
     for s in (0, 1):  # street A, y 0..8, with a car both saw
         add(_plane(rng, (0, 40), (0, 8), 0.0, 3000), (0, 0, 1), s)
         add(_plane(rng, (10, 14), (2, 4), 1.6, 300), (0, 0, 1), s, movable=True)
     add(_plane(rng, (0, 40), (30, 38), 0.0, 3000), (0, 0, 1), 2)  # street B, session 2 alone
     add(_plane(rng, (20, 24), (32, 34), 1.6, 300), (0, 0, 1), 2, movable=True)
     add(np.column_stack([rng.uniform(0, 40, 1000), np.full(1000, 38.0), rng.uniform(0, 4, 1000)]), (0, -1, 0), 2)
-    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
-    n = torch.tensor(np.concatenate(nrm), dtype=torch.float32)
-    s = torch.tensor(np.concatenate(sess))
-    m = torch.tensor(np.concatenate(mov))
+    p, n, s, m = scene.tensors()
     lone = torch.zeros(len(p), dtype=torch.bool)
     lone[2 * 3300 + 3000: 2 * 3300 + 3300] = True
     assert bool(m[lone].all()) and int(m.sum()) == 900
@@ -129,12 +181,10 @@ def test_a_second_witness_is_asked_only_where_a_second_session_was_there() -> No
     (its road has a hole under the car: no free-space evidence) is dropped; a car both saw stays. Without
     the cover radius the street-B car is dropped too (the tile holds two sessions)."""
     rng = np.random.default_rng(7)
-    pts, sess, mov = [], [], []
+    scene = _Scene()
 
     def add(p: np.ndarray, s: int, movable: bool = False) -> None:
-        pts.append(p)
-        sess.append(np.full(len(p), s))
-        mov.append(np.full(len(p), movable))
+        scene.add(p, (0.0, 0.0, 1.0), s, movable)
 
     add(_plane(rng, (0, 40), (0, 8), 0.0, 3000), 0)  # street A
     road_1 = _plane(rng, (0, 40), (0, 8), 0.0, 3000)
@@ -144,10 +194,7 @@ def test_a_second_witness_is_asked_only_where_a_second_session_was_there() -> No
     add(_plane(rng, (30, 34), (2, 4), 1.6, 300), 0, movable=True)  # car 2: session 0 only
     add(_plane(rng, (0, 40), (30, 38), 0.0, 3000), 0)  # street B, session 0 alone
     add(_plane(rng, (20, 24), (32, 34), 1.6, 300), 0, movable=True)  # car 3
-    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)
-    s = torch.tensor(np.concatenate(sess))
-    m = torch.tensor(np.concatenate(mov))
-    n = torch.tensor([0.0, 0.0, 1.0]).expand(len(p), 3)
+    p, n, s, m = scene.tensors()
     car1 = m & (p[:, 0] < 20) & (p[:, 1] < 10)
     car2 = m & (p[:, 0] > 20) & (p[:, 1] < 10)
     car3 = m & (p[:, 1] > 10)
