@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -330,6 +330,29 @@ def voted_labels(points: np.ndarray, head: np.ndarray, support: np.ndarray, supp
     return np.where((best == 0) | keep_head, head, votes.argmax(axis=1))
 
 
+def deflate_faces(vertices: np.ndarray, faces: np.ndarray, face_labels: np.ndarray, labels: Sequence[int],
+                  offset_m: float, fixed: np.ndarray | None = None) -> np.ndarray:
+    """``vertices`` with those of faces labelled one of ``labels`` moved ``offset_m`` in along their normal
+    (area-weighted face normals, which point to free space), except where ``fixed`` (seam vertices: both
+    tiles keep them where they are). The inverse of the reconstruction's minimum thickness
+    (``fusion.reconstruct.inflate_thin_surfaces``): the samples of a pole or a sign plate sat ``offset_m``
+    out so the grid holds an interior; the surface reported is moved back to where the uploads put it."""
+    v = np.asarray(vertices, np.float64)
+    thin = np.isin(face_labels, np.asarray(labels, np.int64))
+    if offset_m <= 0 or not thin.any():
+        return v
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    area_normal = np.cross(b - a, c - a)
+    normal = np.stack([sum(np.bincount(faces[:, k], area_normal[:, d], len(v)) for k in range(3)) for d in range(3)], 1)
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
+    move = np.zeros(len(v), bool)
+    move[faces[thin].ravel()] = True
+    if fixed is not None:
+        move &= ~fixed
+    return v - offset_m * normal * move[:, None]
+
+
 def _face_labels(vl: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a, b, c = vl[faces[:, 0]], vl[faces[:, 1]], vl[faces[:, 2]]
     return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
@@ -350,6 +373,8 @@ def extract_mesh(
     support: np.ndarray | None = None,
     support_m: float = 0.0,
     support_labels: np.ndarray | None = None,
+    deflate_labels: Sequence[int] = (),
+    deflate_m: float = 0.0,
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
@@ -359,7 +384,8 @@ def extract_mesh(
     face's centroid (one more query per face; keeps structures narrower than a voxel, e.g. lane
     markings, that fall between vertices). ``support`` (n, 3) map-frame input surface points and
     ``support_m`` > 0: confidence is 0 farther than ``support_m`` from every one (``supported_attrs``),
-    on seam planes too, so neighbours still agree.
+    on seam planes too, so neighbours still agree. ``deflate_labels`` / ``deflate_m``: faces so labelled move
+    ``deflate_m`` in along their normals (``deflate_faces``), seam vertices excepted.
     """
     if support is not None and support_m > 0:
         attr_fn = supported_attrs(attr_fn, support, support_m)
@@ -399,7 +425,7 @@ def extract_mesh(
     remap = np.full(len(verts), -1, np.int64)
     remap[used] = np.arange(len(used))
     faces = remap[faces]
-    verts, conf, labels = verts[used], conf[used], labels[used]
+    verts, conf, labels, seam = verts[used], conf[used], labels[used], seam[used]
     vl = labels.astype(np.uint8)
     if not len(faces):
         fl = np.zeros(0, np.uint8)
@@ -412,6 +438,7 @@ def extract_mesh(
         fl = fl.astype(np.uint8)
     else:
         fl = _face_labels(vl, faces).astype(np.uint8)
+    verts = deflate_faces(verts, faces, fl, deflate_labels, deflate_m, fixed=seam)
     mesh = FusedMesh(verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32), fl)
     stats["faces"] = int(len(faces))
     return mesh, border, stats

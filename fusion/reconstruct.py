@@ -300,6 +300,8 @@ def _extract(
         support=_posed_pool(problem).double().cpu().numpy() + problem.origin,
         support_labels=problem.pool.labels.cpu().numpy(),
         support_m=config.extract_support_m,
+        deflate_labels=config.thin_label_ids() if config.thin_deflate else (),
+        deflate_m=config.thin_inflate_m,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
 

@@ -324,6 +324,7 @@ COMPONENTS: tuple[str, ...] = (
     "consensus_movable_sessions=0",  # ... vehicles and obstacles kept without a second session's witness
     "consensus_movable_cover_m=5",  # ... a second witness asked only where a second session was within 5 m
     "thin_inflate_m=0",  # poles, sign plates and fences reconstructed as thin as the uploads say
+    "thin_deflate=false",  # ... inflated, and their extracted faces not moved back in by as much
     "recon_warm_fraction=0",  # reconstruction from scratch, not from the alignment's field
     "extract_support_m=0",  # no surface farther than 1 m from every posed input point
     "face_labels=vote",  # face labels voted by the posed input points near each face

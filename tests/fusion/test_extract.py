@@ -249,3 +249,32 @@ def test_voted_face_labels_take_the_data_majority_near_each_face() -> None:
                               support=np.column_stack([pts[:, :2] * 2, -wavy()(np.column_stack([pts[:, :2] * 2, pts[:, 2]]))]),
                               support_m=1.0, support_labels=labels)
     assert set(np.unique(mesh.face_labels)) <= {1, 8} and (mesh.face_labels == 8).any()
+
+
+def test_thin_faces_move_back_in_by_the_inflation_and_seams_stay() -> None:
+    """``deflate_labels``: a wall the field holds 0.25 m out on each side (a 0.3 m pole's samples inflated by
+    0.1 m) is reported 0.15 m out once its faces move 0.1 m in; the ground's faces and every vertex on the
+    tile's border planes (where the wall crosses them) stay where they were."""
+
+    def ground_and_wall(x: np.ndarray) -> np.ndarray:
+        wall = np.maximum(np.abs(x[:, 1] - 4.0) - 0.25, x[:, 2] - 3.0)
+        return np.minimum(x[:, 2] - 0.5, wall)
+
+    def wall_is_a_pole(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.ones(len(x)), np.where((np.abs(x[:, 1] - 4.0) < 0.4) & (x[:, 2] > 0.7), 7, 1)
+
+    tile = TileSpec(0, 0, 8.0)
+    plain, _, _ = extract_mesh(ground_and_wall, wall_is_a_pole, tile, (0.0, 4.0), 0.1, face_labels="centroid")
+    thin, _, _ = extract_mesh(ground_and_wall, wall_is_a_pole, tile, (0.0, 4.0), 0.1, face_labels="centroid",
+                              deflate_labels=[7], deflate_m=0.1)
+    assert np.array_equal(plain.faces, thin.faces) and np.array_equal(plain.face_labels, thin.face_labels)
+    v0, v1 = plain.vertices.astype(np.float64), thin.vertices.astype(np.float64)
+    side = (v0[:, 2] > 1.2) & (v0[:, 2] < 2.5) & (v0[:, 0] > 0.5) & (v0[:, 0] < 7.5)
+    assert side.sum() > 100
+    assert np.abs(np.abs(v0[side, 1] - 4.0) - 0.25).max() < 0.02
+    assert np.abs(np.abs(v1[side, 1] - 4.0) - 0.15).max() < 0.02
+    assert np.allclose(v1[side][:, [0, 2]], v0[side][:, [0, 2]], atol=0.02)  # in along the normal, not up
+    ground = np.abs(v0[:, 1] - 4.0) > 1.0
+    assert np.array_equal(v0[ground], v1[ground])
+    border = (np.abs(v0[:, 0]) < 1e-6) | (np.abs(v0[:, 0] - 8.0) < 1e-6)
+    assert (border & (np.abs(v0[:, 1] - 4.0) < 0.3)).any() and np.array_equal(v0[border], v1[border])
