@@ -353,6 +353,44 @@ def deflate_faces(vertices: np.ndarray, faces: np.ndarray, face_labels: np.ndarr
     return v - offset_m * normal * move[:, None]
 
 
+def split_label_boundaries(
+    verts: np.ndarray, faces: np.ndarray, conf: np.ndarray, vertex_labels: np.ndarray, face_labels: np.ndarray,
+    seam: np.ndarray, label_fn: Callable[[np.ndarray], np.ndarray],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Faces on a class boundary (their vertex and centroid labels disagree) split in four at their edge
+    midpoints, each quarter labelled at its own centroid by ``label_fn`` (n, 3) → (n,).
+
+    One face label per lattice voxel steps over what is narrower than a voxel: a 0.15 m lane marking under
+    0.25 m faces goes to the road wherever no centroid falls on it, and every class edge is drawn at the
+    voxel's resolution. Only boundary faces split, so the cost is one label query per new vertex and
+    quarter. Neighbouring split faces share their edge midpoints; a split face's midpoint on an unsplit
+    neighbour's edge lies on that edge (a T-junction, no gap). A midpoint is a seam vertex when both ends
+    are (it lies on the border plane between them) and takes their confidence's mean; new vertices' labels
+    come from ``label_fn``. Returns vertices, faces, confidence, vertex labels, face labels and seam mask."""
+    fl = np.asarray(face_labels, np.int64)
+    vl = np.asarray(vertex_labels, np.int64)
+    mixed = (vl[faces] != fl[:, None]).any(axis=1)
+    if not mixed.any():
+        return verts, faces, conf, vertex_labels, face_labels, seam
+    split = faces[mixed]
+    edges = np.sort(np.concatenate([split[:, [0, 1]], split[:, [1, 2]], split[:, [2, 0]]]), axis=1)
+    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+    inverse = inverse.reshape(3, -1).T + len(verts)  # (n, 3): midpoint ids of edges 01, 12, 20
+    mid = (verts[unique[:, 0]] + verts[unique[:, 1]]) / 2
+    v = np.concatenate([verts, mid])
+    c = np.concatenate([conf, (conf[unique[:, 0]] + conf[unique[:, 1]]) / 2])
+    sm = np.concatenate([seam, seam[unique[:, 0]] & seam[unique[:, 1]]])
+    lab = np.concatenate([vl, np.asarray(label_fn(mid), np.int64)])
+    a, b, cc = split[:, 0], split[:, 1], split[:, 2]
+    ab, bc, ca = inverse[:, 0], inverse[:, 1], inverse[:, 2]
+    quarters = np.concatenate([np.stack(q, axis=1) for q in ((a, ab, ca), (ab, b, bc), (ca, bc, cc), (ab, bc, ca))])
+    q_labels = np.asarray(label_fn(v[quarters].mean(axis=1)), np.int64)
+    f = np.concatenate([faces[~mixed], quarters])
+    out_fl = np.concatenate([fl[~mixed], q_labels])
+    return (v, f.astype(faces.dtype), c, lab.astype(np.asarray(vertex_labels).dtype),
+            out_fl.astype(np.asarray(face_labels).dtype), sm)
+
+
 def _face_labels(vl: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a, b, c = vl[faces[:, 0]], vl[faces[:, 1]], vl[faces[:, 2]]
     return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
@@ -375,6 +413,7 @@ def extract_mesh(
     support_labels: np.ndarray | None = None,
     deflate_labels: Sequence[int] = (),
     deflate_m: float = 0.0,
+    split_labels: bool = False,
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
@@ -385,7 +424,9 @@ def extract_mesh(
     markings, that fall between vertices). ``support`` (n, 3) map-frame input surface points and
     ``support_m`` > 0: confidence is 0 farther than ``support_m`` from every one (``supported_attrs``),
     on seam planes too, so neighbours still agree. ``deflate_labels`` / ``deflate_m``: faces so labelled move
-    ``deflate_m`` in along their normals (``deflate_faces``), seam vertices excepted.
+    ``deflate_m`` in along their normals (``deflate_faces``), seam vertices excepted. ``split_labels`` (with
+    ``centroid`` or ``vote`` labels): faces on a class boundary split in four, each quarter labelled at its
+    centroid (``split_label_boundaries``).
     """
     if support is not None and support_m > 0:
         attr_fn = supported_attrs(attr_fn, support, support_m)
@@ -436,6 +477,17 @@ def extract_mesh(
             assert support is not None and support_labels is not None
             fl = voted_labels(centroids, fl, support, support_labels)
         fl = fl.astype(np.uint8)
+        if split_labels:
+            def label_at(x: np.ndarray) -> np.ndarray:
+                head = np.asarray(attr_fn(x)[1])
+                if face_labels == "vote":
+                    assert support is not None and support_labels is not None
+                    return voted_labels(x, head, support, support_labels)
+                return head
+
+            before = len(faces)
+            verts, faces, conf, vl, fl, seam = split_label_boundaries(verts, faces, conf, vl, fl, seam, label_at)
+            stats["split_faces"] = int(len(faces) - before) // 3
     else:
         fl = _face_labels(vl, faces).astype(np.uint8)
     verts = deflate_faces(verts, faces, fl, deflate_labels, deflate_m, fixed=seam)

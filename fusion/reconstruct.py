@@ -302,6 +302,7 @@ def _extract(
         support_m=config.extract_support_m,
         deflate_labels=config.thin_label_ids() if config.thin_deflate else (),
         deflate_m=config.thin_inflate_m,
+        split_labels=config.face_label_split,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from fusion.extract import extract_mesh, narrow_band_sdf, tile_lattice
 from fusion.types import TileSpec
@@ -278,3 +279,37 @@ def test_thin_faces_move_back_in_by_the_inflation_and_seams_stay() -> None:
     assert np.array_equal(v0[ground], v1[ground])
     border = (np.abs(v0[:, 0]) < 1e-6) | (np.abs(v0[:, 0] - 8.0) < 1e-6)
     assert (border & (np.abs(v0[:, 1] - 4.0) < 0.3)).any() and np.array_equal(v0[border], v1[border])
+
+
+def test_faces_on_a_class_boundary_split_and_follow_a_strip_narrower_than_a_voxel() -> None:
+    def flat(x: np.ndarray) -> np.ndarray:
+        return x[:, 2] - 1.1
+
+    def strip(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # a 0.15 m "lane marking" inside one 0.25 m lattice column
+        return np.ones(len(x)), np.where((x[:, 0] >= 4.0) & (x[:, 0] < 4.15), 3, 1)
+
+    def precision_recall(mesh) -> tuple[float, float]:  # noqa: ANN001
+        v, f = mesh.vertices.astype(np.float64), mesh.faces
+        w = np.random.default_rng(0).dirichlet(np.ones(3), size=(len(f), 16))
+        x = np.einsum("fkj,fjd->fkd", w, v[f])[..., 0]
+        area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)[:, None]
+        on, marked = (x >= 4.0) & (x < 4.15), (mesh.face_labels == 3)[:, None]
+        hit = (area * (on & marked)).sum()
+        return hit / (area * marked).sum(), hit / (area * on).sum()
+
+    tile = TileSpec(0, 0, 8.0)
+    plain, _, _ = extract_mesh(flat, strip, tile, (0.0, 2.0), 0.25, face_labels="centroid")
+    split, _, stats = extract_mesh(flat, strip, tile, (0.0, 2.0), 0.25, face_labels="centroid", split_labels=True)
+    (p0, r0), (p1, r1) = precision_recall(plain), precision_recall(split)
+    assert p1 > p0 + 0.1 and r1 > r0 + 0.1, (p0, r0, p1, r1)
+    # only the boundary faces split (one column of cells along the strip), the surface is unchanged
+    assert 0 < stats["split_faces"] <= 4 * 32
+    assert len(split.faces) == len(plain.faces) + 3 * stats["split_faces"]
+    assert np.allclose(split.vertices[:, 2], 1.1, atol=1e-5)
+    def area(mesh) -> float:  # noqa: ANN001
+        a, b, c = (mesh.vertices[mesh.faces[:, k]].astype(np.float64) for k in range(3))
+        return float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2)
+
+    assert area(split) == pytest.approx(area(plain), rel=1e-6)
+    assert len(split.vertex_labels) == len(split.vertices) == len(split.vertex_confidence)
