@@ -328,6 +328,7 @@ COMPONENTS: tuple[str, ...] = (
     "recon_warm_fraction=0",  # reconstruction from scratch, not from the alignment's field
     "extract_support_m=0",  # no surface farther than 1 m from every posed input point
     "face_labels=vote",  # face labels voted by the posed input points near each face
+    "face_label_split=true",  # faces on a class boundary split in four, each quarter labelled at its centroid
 )
 
 
