@@ -471,20 +471,15 @@ def extract_mesh(
     if not len(faces):
         fl = np.zeros(0, np.uint8)
     elif face_labels in ("centroid", "vote"):
-        centroids = verts[faces].mean(axis=1)
-        fl = np.asarray(attr_fn(centroids)[1])
-        if face_labels == "vote":
-            assert support is not None and support_labels is not None
-            fl = voted_labels(centroids, fl, support, support_labels)
-        fl = fl.astype(np.uint8)
-        if split_labels:
-            def label_at(x: np.ndarray) -> np.ndarray:
-                head = np.asarray(attr_fn(x)[1])
-                if face_labels == "vote":
-                    assert support is not None and support_labels is not None
-                    return voted_labels(x, head, support, support_labels)
-                return head
+        def label_at(x: np.ndarray) -> np.ndarray:
+            head = np.asarray(attr_fn(x)[1])
+            if face_labels == "vote":
+                assert support is not None and support_labels is not None
+                return voted_labels(x, head, support, support_labels)
+            return head
 
+        fl = label_at(verts[faces].mean(axis=1)).astype(np.uint8)
+        if split_labels:
             before = len(faces)
             verts, faces, conf, vl, fl, seam = split_label_boundaries(verts, faces, conf, vl, fl, seam, label_at)
             stats["split_faces"] = int(len(faces) - before) // 3
