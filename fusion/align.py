@@ -37,7 +37,7 @@ import torch
 from fusion.coarse import coarse_register
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
-from fusion.field import SemanticSDFField, field_from_state
+from fusion.field import SemanticSDFField, field_from_state, field_state
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.reconstruct import TileProblem, build_problem, overlapping, set_consensus
@@ -130,7 +130,7 @@ def align_region(
     train_s = time.perf_counter() - t_train
     if config.fine_register and config.fine_polish_rounds > 0:
         poses, coarse["polish"] = _polish(subs, poses, gps, config, dev)
-    fields = {t.key: {k: v.detach().cpu().clone() for k, v in t.field.state_dict().items()} for t in built}
+    fields = {t.key: field_state(t.field) for t in built}
     metrics = {
         "losses": losses,
         "iterations": iterations,

@@ -190,6 +190,18 @@ class FusionConfig:
     # 0.908/0.381/20 -> 0.916/0.415/11, 0.801/0.413/24 -> 0.800/0.432/12, 0.758/0.233/21 -> 0.774/0.246/12;
     # exact seed 0 0.963/0.726/24 -> 0.966/0.772/12 (transient 43 -> 6 %)
     recon_warm_fraction: float = 1 / 3
+    # a re-fusion of a tile from its previous reconstruction's field (the held submaps at the poses it was
+    # trained at; a new session's submaps added by an incremental alignment): this fraction of a cold start's
+    # steps, every level at once (0: from the alignment's field as above). Fewer steps lost the new session's
+    # surface and the consensus' changes (a fresh Adam's first steps jolt a trained field; at the true poses,
+    # exact seed 1, tile 1_0 geo / sem F: 1/3 0.994 / 0.928, 1/6 0.987 / 0.861, 1/12 0.962 / 0.758, the
+    # four-session map 0.962 / 0.838; a lower field rate could not build the new surface). README, "Adding a
+    # session ... from the tile's own field".
+    refusion_warm_fraction: float = 1 / 3
+    # an incremental alignment tracks new submaps against each tile's last reconstruction field where it has
+    # one (trained on every submap held so far, the full schedule) rather than its alignment field (the
+    # sessions of the tile's first alignment, a short schedule); false: always the alignment field
+    align_track_reconstruction: bool = True
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). New session's
     # pose RMSE, 2x2 bench, 3 sessions, camera seeds 0/1: 60/tile 0.280/0.334 m, 240/tile 0.171/0.243 m (+9 s)
     align_incremental_iterations_per_tile: int = 240

@@ -7,6 +7,7 @@ positive in free space.
 
 from __future__ import annotations
 
+import io
 import math
 
 import torch
@@ -153,3 +154,20 @@ def field_from_state(state: dict[str, Tensor], config: FusionConfig) -> Semantic
     f = SemanticSDFField(config, lo, lo + state["norm.extent"].float())
     f.load_state_dict(state)
     return f
+
+
+def field_state(field: SemanticSDFField) -> dict[str, Tensor]:
+    """A detached CPU copy of ``field``'s ``state_dict``: what a job keeps (``field_from_state``)."""
+    return {k: v.detach().cpu().clone() for k, v in field.state_dict().items()}
+
+
+def pack_state(state: dict[str, Tensor]) -> bytes:
+    """A field state as bytes (a job's blob)."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    return buffer.getvalue()
+
+
+def unpack_state(data: bytes) -> dict[str, Tensor]:
+    """Inverse of :func:`pack_state` (tensors only: no code is unpickled)."""
+    return torch.load(io.BytesIO(data), weights_only=True)

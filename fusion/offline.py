@@ -22,7 +22,16 @@ from fusion import geo, tiles
 from fusion.errors import FusionError, FusionLibraryError
 from fusion.meshio import read_submap_ply, write_fused_ply
 from fusion.regions import regions
-from fusion.types import FusionResult, Pose, ProgressCallback, ProgressEvent, Sigma, SubmapInput, TileSpec
+from fusion.types import (
+    FusionResult,
+    Pose,
+    ProgressCallback,
+    ProgressEvent,
+    Sigma,
+    SubmapInput,
+    TileSpec,
+    WarmKind,
+)
 
 if TYPE_CHECKING:
     from fusion.config import FusionConfig
@@ -179,7 +188,11 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
                        ) -> dict[tuple[int, int], FusionResult]:
     """Each tile in order with every submap held at ``poses`` (else its GPS pose); neighbours
     reconstructed earlier (here, else in ``previous``: the tiles a re-fusion leaves as they are) pin the
-    shared border. ``warm``: field states by tile to start from (``reconstruct_tile``)."""
+    shared border. ``warm``: field states by tile to start from (``reconstruct_tile``).
+
+    ``previous``: the map before a session was added (its submaps held where they were, the new ones
+    aligned against it): a tile of it re-fused here starts from its own field instead, with
+    ``refusion_warm_fraction`` of the steps."""
     from fusion.reconstruct import reconstruct_tile
 
     results: dict[tuple[int, int], FusionResult] = {}
@@ -194,10 +207,15 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
                   for s in submaps if key in s.tiles]
         pins = tiles.border_pins(*key, border_of)
         label = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)})"
+        last = before.get(key)
+        start: dict[str, Any] | None = (warm or {}).get(key)
+        kind: WarmKind = "alignment"
+        if last is not None and last.field_state is not None and config.refusion_warm_fraction > 0:
+            start, kind = last.field_state, "reconstruction"
         try:
             result = reconstruct_tile(inputs, TileSpec(key[0], key[1], tile_size), config,
                                       progress=_staged(progress, label), border_pins=pins or None,
-                                      warm=(warm or {}).get(key))
+                                      warm=start, warm_kind=kind)
         except FusionError as exc:
             _skip_or_raise(skipped, f"{key[0]}_{key[1]}", exc)
             continue

@@ -20,7 +20,7 @@ import torch
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
 from fusion.extract import extract_mesh
-from fusion.field import SemanticSDFField, field_from_state
+from fusion.field import SemanticSDFField, field_from_state, field_state
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.runtime import resolve_device
@@ -34,7 +34,15 @@ from fusion.sampling import (
 )
 from fusion.schedule import content_iterations, tile_content
 from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
-from fusion.types import FusedMesh, FusionResult, ProgressCallback, ProgressEvent, SubmapInput, TileSpec
+from fusion.types import (
+    FusedMesh,
+    FusionResult,
+    ProgressCallback,
+    ProgressEvent,
+    SubmapInput,
+    TileSpec,
+    WarmKind,
+)
 
 
 def overlapping(submaps: list[SubmapInput], tile: TileSpec, margin_m: float) -> list[SubmapInput]:
@@ -184,13 +192,17 @@ def reconstruct_tile(
     border_pins: dict | None = None,
     device: str | None = None,
     warm: dict[str, torch.Tensor] | None = None,
+    warm_kind: WarmKind = "alignment",
 ) -> FusionResult:
     """Fuse the submaps touching ``tile`` into a semantic mesh (map frame) and refine free submaps'
     poses (the service holds every pose: its alignment jobs own them).
 
     ``warm``: a field state of this tile (its region alignment's, trained on the same data at nearly
     these poses) to start from: ``recon_warm_fraction`` of the steps at every level instead of a cold
-    start's full progressive schedule (``recon_warm_fraction`` 0: always cold).
+    start's full progressive schedule (0: always cold). ``warm_kind`` "reconstruction": the state is the
+    tile's previous reconstruction (its held submaps at the poses it was trained at, new submaps added):
+    ``refusion_warm_fraction`` of the steps. The result carries the trained field's state
+    (``FusionResult.field_state``).
 
     Raises ``FusionError`` when no submap overlaps the tile (+ margin).
     """
@@ -201,9 +213,10 @@ def reconstruct_tile(
     problem = build_problem(submaps, tile, config, dev, inflate_thin=True)
     content = tile_content(_posed_pool(problem), problem.lo, problem.hi, config)  # steps ∝ content (recorded)
     steps = content_iterations(config.iterations, [content], config)
-    field = _warm_field(warm, config, dev)
+    fraction = config.refusion_warm_fraction if warm_kind == "reconstruction" else config.recon_warm_fraction
+    field = _warm_field(warm, fraction, config, dev)
     if field is not None:
-        steps = max(1, round(steps * config.recon_warm_fraction))
+        steps = max(1, round(steps * fraction))
     warm_start = field is not None
     config = config.with_(iterations=steps)
     if field is None:
@@ -230,6 +243,7 @@ def reconstruct_tile(
         "points_per_s": evaluated / max(train_s, 1e-9),
         "device": str(dev),
         "warm_start": warm_start,
+        "warm_kind": warm_kind if warm_start else None,
         "num_submaps": len(problem.submaps),
         "num_free": int(sum(sm.free for sm in problem.submaps)),
         "pool_points": int(problem.pool.points.shape[0]),
@@ -237,14 +251,14 @@ def reconstruct_tile(
         "extract": ex_stats,
     }
     poses = map_poses(problem.poses, problem.origin, problem.submaps)
-    return FusionResult(mesh, poses, metrics, config.to_dict(), border)
+    return FusionResult(mesh, poses, metrics, config.to_dict(), border, field_state(field))
 
 
-def _warm_field(warm: dict[str, torch.Tensor] | None, config: FusionConfig,
+def _warm_field(warm: dict[str, torch.Tensor] | None, fraction: float, config: FusionConfig,
                 dev: torch.device) -> SemanticSDFField | None:
-    """The warm-start field, or None: no state, warm starts off, or a state of another field layout (the
-    preset changed since the alignment: a cold start, not a failed job)."""
-    if warm is None or config.recon_warm_fraction <= 0:
+    """The warm-start field, or None: no state, warm starts off (``fraction`` 0), or a state of another
+    field layout (the preset changed since the alignment: a cold start, not a failed job)."""
+    if warm is None or fraction <= 0:
         return None
     try:
         return field_from_state(warm, config).to(dev)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -212,6 +212,10 @@ class ProgressEvent:
 
 ProgressCallback = Callable[[ProgressEvent], None]
 
+# what a reconstruction's warm start was trained as: the region alignment's field of the tile, or the tile's
+# previous reconstruction (a re-fusion after a session was added; fusion.reconstruct.reconstruct_tile)
+WarmKind = Literal["alignment", "reconstruction"]
+
 
 @dataclass
 class FusionResult:
@@ -221,7 +225,8 @@ class FusionResult:
     submap id; metrics: numbers worth recording (losses, iterations, duration_s, points_per_s, ...);
     config: the FusionConfig used, as a dict; border: SDF samples on the tile's border planes,
     keyed by side (``"x0"``, ``"x1"``, ``"y0"``, ``"y1"``), that a neighbouring tile's extraction may pin
-    to so that their seam vertices coincide.
+    to so that their seam vertices coincide; field_state: the trained field's state (CPU tensors), the warm
+    start of the tile's next re-fusion (None where no field was trained).
     """
 
     mesh: FusedMesh
@@ -229,3 +234,4 @@ class FusionResult:
     metrics: dict[str, Any]
     config: dict[str, Any]
     border: dict[str, Any] = field(default_factory=dict)
+    field_state: dict[str, Any] | None = None

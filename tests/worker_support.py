@@ -120,12 +120,17 @@ class _FakeStage:
 
 
 class FakeFusion(_FakeStage):
-    """Stands in for the tile reconstruction (``worker.runner._fuse``): a two-triangle mesh."""
+    """Stands in for the tile reconstruction (``worker.runner._fuse``): a two-triangle mesh, and a
+    one-tensor field state whose value counts this fake's calls."""
 
     def __call__(self, inputs: Any, keeper: Any) -> FusionResult:
-        self.warm = inputs.warm
+        import torch
+
+        self.warm, self.warm_kind = inputs.warm, inputs.warm_kind
         poses = self._moved(inputs.tile, inputs.submaps)
-        return FusionResult(fake_mesh(inputs.tile), poses, {"losses": {"total": 0.1}}, inputs.config.to_dict())
+        state = {"w": torch.full((1,), float(len(self.calls)))}
+        return FusionResult(fake_mesh(inputs.tile), poses, {"losses": {"total": 0.1}}, inputs.config.to_dict(),
+                            field_state=state)
 
 
 class FakeAlign(_FakeStage):

@@ -22,7 +22,7 @@ from sqlalchemy.orm import Session
 from fusion.config import FusionConfig
 from fusion.meshio import MeshLimits, read_submap_ply
 from fusion.tiles import border_pins
-from fusion.types import Pose, Sigma, SubmapInput, TileSpec, quat_to_matrix, rotation_angle_deg
+from fusion.types import Pose, Sigma, SubmapInput, TileSpec, WarmKind, quat_to_matrix, rotation_angle_deg
 from service.settings import Settings
 from service.store.blobs import BlobStore
 from service.store.models import Submap, SubmapTile, Tile, TileVersion
@@ -47,7 +47,10 @@ class TileInputs:
     submaps: list[SubmapInput] = field(default_factory=list)
     border_pins: dict[str, Any] = field(default_factory=dict)
     pending: int = 0  # submaps of the tile still waiting for their alignment (left out)
-    warm_sha256: str | None = None  # the tile's last alignment field blob: the reconstruction starts from it
+    # the field blob the reconstruction starts from: the tile's last reconstruction's (a re-fusion after an
+    # incremental alignment: ``refusion_warm_fraction`` of the steps), else its last alignment's
+    warm_sha256: str | None = None
+    warm_kind: WarmKind = "alignment"  # or "reconstruction" (``reconstruct_tile``)
     warm: bytes | None = None  # its bytes (a serialised state dict), read by load_meshes
 
 
@@ -59,7 +62,7 @@ class RegionInputs:
     tiles: list[TileSpec]
     config: FusionConfig
     rows: list[tuple[Submap, Pose, bool]]  # (submap row, initial local → map pose, free)
-    fields: dict[tuple[int, int], str] = field(default_factory=dict)  # tile → its last alignment's field blob
+    fields: dict[tuple[int, int], str] = field(default_factory=dict)  # tile → the map's field blob (frozen)
     submaps: list[SubmapInput] = field(default_factory=list)
 
     @property
@@ -141,29 +144,45 @@ def _submaps_touching(db: Session, keys: list[tuple[int, int]]) -> list[Submap]:
 
 def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
     """The aligned submaps of tile (i, j), every one held at its refined pose (the alignment owns the
-    poses); those still waiting for an alignment are counted in ``pending`` and left out. The tile's
-    last alignment field is the warm start (none when ``recon_warm_fraction`` is 0)."""
+    poses); those still waiting for an alignment are counted in ``pending`` and left out. The warm start:
+    the tile's last reconstruction field (its held submaps have not moved since: alignments after it only
+    added submaps) with ``refusion_warm_fraction`` of the steps, else its last alignment field (none when
+    the fraction is 0). The fingerprint names the alignment field (where warm starts are on), never the
+    reconstruction's (every version changes it): a tile whose submaps and poses are unchanged is not
+    fused again."""
     tile = TileSpec(i, j, settings.tile_size)
     config = fusion_config(settings)
     submaps = _submaps_touching(db, [(i, j)])
     rows = [(s, _pose_init(s), False) for s in submaps if s.pose_refined]
     row = db.get(Tile, (i, j))
-    warm = row.align_field_sha256 if row is not None and config.recon_warm_fraction > 0 else None
-    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows, warm),
-                      pending=len(submaps) - len(rows), warm_sha256=warm)
+    aligned = row.align_field_sha256 if row is not None else None
+    warm: str | None = None
+    kind: WarmKind = "alignment"
+    if row is not None and row.recon_field_sha256 and config.refusion_warm_fraction > 0:
+        warm, kind = row.recon_field_sha256, "reconstruction"
+    elif aligned and config.recon_warm_fraction > 0:
+        warm = aligned
+    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows, aligned if config.recon_warm_fraction > 0 else None),
+                      pending=len(submaps) - len(rows), warm_sha256=warm, warm_kind=kind)
 
 
 def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]]) -> RegionInputs:
     """Every submap touching the region's tiles: the unaligned ones free (at their GPS poses), the
-    aligned ones held at their refined poses; and the fields earlier alignments left in those tiles."""
+    aligned ones held at their refined poses; and the map's fields in those tiles, the new submaps are
+    tracked against: each tile's last reconstruction field (``align_track_reconstruction``), else its
+    alignment field."""
+    config = fusion_config(settings)
     submaps = _submaps_touching(db, keys)
     rows = [(s, _pose_init(s), s.pose_refined is None) for s in submaps]
     fields = {}
     for i, j in keys:
         tile = db.get(Tile, (i, j))
-        if tile is not None and tile.align_field_sha256:
-            fields[(i, j)] = tile.align_field_sha256
-    return RegionInputs([TileSpec(i, j, settings.tile_size) for i, j in keys], fusion_config(settings), rows, fields)
+        if tile is None:
+            continue
+        blob = (config.align_track_reconstruction and tile.recon_field_sha256) or tile.align_field_sha256
+        if blob:
+            fields[(i, j)] = blob
+    return RegionInputs([TileSpec(i, j, settings.tile_size) for i, j in keys], config, rows, fields)
 
 
 def load_submaps(

@@ -45,12 +45,17 @@ class StoredBlobs:
     mesh_sha256: str
     glb_sha256: str
     border_sha256: str | None
+    field_sha256: str | None = None
 
 
 def store_blobs(blobs: BlobStore, result: FusionResult) -> StoredBlobs:
-    """Write the fused mesh as PLY and GLB and the border samples as ``.npz`` (before any row names them)."""
+    """Write the fused mesh as PLY and GLB, the border samples as ``.npz`` and the trained field (the
+    next re-fusion's warm start) before any row names them."""
+    from fusion.field import pack_state
+
     border = blobs.put(pack_border(result.border)) if result.border else None
-    return StoredBlobs(blobs.put(write_fused_ply(result.mesh)), blobs.put(write_glb(result.mesh)), border)
+    field = blobs.put(pack_state(result.field_state)) if result.field_state is not None else None
+    return StoredBlobs(blobs.put(write_fused_ply(result.mesh)), blobs.put(write_glb(result.mesh)), border, field)
 
 
 def jsonable(value: Any) -> Any:
@@ -69,10 +74,11 @@ def jsonable(value: Any) -> Any:
 
 
 def _finish(
-    db: Session, claim: Claim, now: datetime, *, new_version: bool, pending: bool
+    db: Session, claim: Claim, now: datetime, *, new_version: bool, pending: bool, field_sha256: str | None = None
 ) -> tuple[int, str] | None:
     return tiles.finish(db, claim.i, claim.j, owner=claim.owner, generation=claim.generation,
-                        started_at=claim.started_at, now=now, new_version=new_version, pending=pending)
+                        started_at=claim.started_at, now=now, new_version=new_version, pending=pending,
+                        field_sha256=field_sha256)
 
 
 def commit_success(
@@ -87,7 +93,8 @@ def commit_success(
     by the alignment; a reconstruction never moves one, so it never makes another tile dirty."""
     now = utcnow()
     with factory() as db:
-        finished = _finish(db, claim, now, new_version=True, pending=inputs.pending > 0)
+        finished = _finish(db, claim, now, new_version=True, pending=inputs.pending > 0,
+                           field_sha256=stored.field_sha256)
         if finished is None:
             db.rollback()
             log.warning("job %s: lease lost before commit; results discarded", claim.job_id)

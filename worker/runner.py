@@ -88,19 +88,16 @@ def _torch_threads() -> None:
 
 
 def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
-    """Reconstruct one tile with every pose held, from its alignment field where it has one (torch:
-    imported in the worker process only)."""
-    import io
-
-    import torch
-
+    """Reconstruct one tile with every pose held, from its last reconstruction's or alignment's field
+    where it has one (torch: imported in the worker process only)."""
+    from fusion.field import unpack_state
     from fusion.reconstruct import reconstruct_tile
 
     _torch_threads()
-    warm = torch.load(io.BytesIO(inputs.warm), weights_only=True) if inputs.warm else None
+    warm = unpack_state(inputs.warm) if inputs.warm else None
     return reconstruct_tile(
         inputs.submaps, inputs.tile, inputs.config, progress=keeper, border_pins=inputs.border_pins or None,
-        warm=warm,
+        warm=warm, warm_kind=inputs.warm_kind,
     )
 
 
@@ -110,21 +107,13 @@ def _align(
     """Align the region's free submaps against the rest, tracking them against the ``frozen`` fields of
     earlier alignments (serialised state dicts) where a tile has one. Returns the refined poses (map
     frame), metrics, and the fields trained here (serialised), by tile."""
-    import io
-
-    import torch
-
     from fusion.align import align_region
+    from fusion.field import pack_state, unpack_state
 
     _torch_threads()
-    states = {key: torch.load(io.BytesIO(data), weights_only=True) for key, data in frozen.items()}
+    states = {key: unpack_state(data) for key, data in frozen.items()}
     result = align_region(inputs.submaps, inputs.tiles, inputs.config, progress=keeper, frozen=states or None)
-    trained = {}
-    for key, state in result.fields.items():
-        if key not in frozen:
-            buffer = io.BytesIO()
-            torch.save(state, buffer)
-            trained[key] = buffer.getvalue()
+    trained = {key: pack_state(state) for key, state in result.fields.items() if key not in frozen}
     return result.poses, result.metrics, trained
 
 

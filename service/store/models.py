@@ -197,6 +197,9 @@ class Tile(Base):
     # the field the tile's last alignment trained (a torch state dict blob): later alignments track new
     # submaps against it instead of re-training the map
     align_field_sha256: Mapped[str | None] = mapped_column(String(64), default=None)
+    # the field the tile's last reconstruction trained, at the held poses of its submaps: the warm start of
+    # its re-fusion after an incremental alignment added submaps (cleared when an alignment trains the tile)
+    recon_field_sha256: Mapped[str | None] = mapped_column(String(64), default=None)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
 

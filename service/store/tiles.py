@@ -149,23 +149,24 @@ def hand_over(
     db: Session, i: int, j: int, *, owner: str, job_id: str, now: datetime, field_sha256: str | None = None
 ) -> bool:
     """An alignment finished: the tile goes from ``owner``'s lease to its reconstruct job ``job_id``
-    (→ ``queued``), recording the field the alignment trained there if any; False if the lease is no
-    longer ours."""
+    (→ ``queued``), recording the field the alignment trained there if any (a reconstruction field of
+    the tile's earlier poses no longer is a warm start); False if the lease is no longer ours."""
     values: dict[str, Any] = {
         "state": TileState.queued.value, "job_id": job_id, "lease_owner": None, "lease_until": None,
         "progress": 0.0, "updated_at": now,
     }
     if field_sha256 is not None:
-        values["align_field_sha256"] = field_sha256
+        values.update(align_field_sha256=field_sha256, recon_field_sha256=None)
     return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 
 def finish(
     db: Session, i: int, j: int, *, owner: str, generation: int, started_at: datetime, now: datetime,
-    new_version: bool, pending: bool = False,
+    new_version: bool, pending: bool = False, field_sha256: str | None = None,
 ) -> tuple[int, str] | None:
     """Release ``owner``'s lease after a successful fusion from ``generation``: → ``fused``, or
-    ``dirty`` when uploads arrived since or ``pending`` submaps (still unaligned) were left out.
+    ``dirty`` when uploads arrived since or ``pending`` submaps (still unaligned) were left out;
+    ``field_sha256``: the field the reconstruction trained (the tile's next re-fusion starts from it).
     Returns ``(version, state)``; None when the lease is no longer ours (nothing written)."""
     unchanged = false() if pending else Tile.dirty_generation == generation
     values: dict[str, Any] = {
@@ -180,6 +181,8 @@ def finish(
     }
     if new_version:
         values.update(version=Tile.version + 1, fused_at=now)
+    if field_sha256 is not None:
+        values["recon_field_sha256"] = field_sha256
     row = db.execute(
         _update(i, j, Tile.lease_owner == owner).values(**values).returning(Tile.version, Tile.state)
     ).one_or_none()

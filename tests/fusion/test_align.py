@@ -80,6 +80,12 @@ def test_align_levels_capped() -> None:
     assert max(align_levels(i, 100, cfg) for i in range(100)) == 5
 
 
+def ground_share(mesh) -> float:  # noqa: ANN001
+    """The share of a mesh's faces on the street's ground plane (z ≈ 0)."""
+    v = mesh.vertices[mesh.faces].mean(axis=1)
+    return float(np.sum(np.abs(v[:, 2]) < 0.3)) / max(1, len(mesh.faces))
+
+
 def test_reconstruction_starts_from_the_alignment_field() -> None:
     """A warm start carries the aligned field's surface: one step from it already extracts the street
     (a cold start's single step does not), a layout mismatch falls back to a cold start, and
@@ -96,17 +102,38 @@ def test_reconstruction_starts_from_the_alignment_field() -> None:
     cold = reconstruct_tile(held, TILES[0], one_step)
     assert warm.metrics["warm_start"] and warm.metrics["iterations"] == 1
     assert not cold.metrics["warm_start"] and cold.metrics["iterations"] == 3
-
-    def ground_share(mesh) -> float:  # faces on the street's ground plane (z ≈ 0), of its 8 m × 16 m in the tile
-        v = mesh.vertices[mesh.faces].mean(axis=1)
-        return float(np.sum(np.abs(v[:, 2]) < 0.3)) / max(1, len(mesh.faces))
-
     assert len(warm.mesh.faces) > 0 and ground_share(warm.mesh) > 0.5
     assert ground_share(cold.mesh) < ground_share(warm.mesh) - 0.2, (ground_share(cold.mesh), ground_share(warm.mesh))
     other = reconstruct_tile(held, TILES[0], one_step.with_(num_levels=4), warm=state)
     assert not other.metrics["warm_start"]
     off = reconstruct_tile(held, TILES[0], one_step.with_(recon_warm_fraction=0.0), warm=state)
     assert not off.metrics["warm_start"] and off.metrics["iterations"] == 3
+
+
+def test_a_refusion_starts_from_the_tiles_previous_reconstruction() -> None:
+    """A reconstruction returns its trained field. Session b added, the tile's re-fusion starts from the
+    field of the map before (session a), with ``refusion_warm_fraction`` of the steps: one step from it
+    holds the street (a cold step does not). ``reconstruct_tiles`` re-fuses a tile of ``previous`` that way."""
+    from fusion.offline import LoadedSubmap, reconstruct_tiles
+    from fusion.reconstruct import reconstruct_tile
+
+    held = [replace(s, free=False) for s in _scene(offset=(0.0, 0.0, 0.0), yaw_deg=0.0)]
+    cfg = _config(iterations=60, schedule_min_fraction=1.0)
+    first = reconstruct_tile(held[:1], TILES[0], cfg)
+    assert first.field_state is not None and not first.metrics["warm_start"]
+    once = cfg.with_(refusion_warm_fraction=1 / 60)
+    again = reconstruct_tile(held, TILES[0], once, warm=first.field_state, warm_kind="reconstruction")
+    cold = reconstruct_tile(held, TILES[0], once.with_(iterations=1))
+    assert again.metrics["iterations"] == 1 and again.metrics["warm_kind"] == "reconstruction"
+    assert ground_share(again.mesh) > 0.5 and ground_share(cold.mesh) < ground_share(again.mesh) - 0.2
+    # as the alignment's warm start would: a third of the steps
+    aligned = reconstruct_tile(held, TILES[0], once, warm=first.field_state)
+    assert aligned.metrics["iterations"] == 20 and aligned.metrics["warm_kind"] == "alignment"
+
+    loaded = [LoadedSubmap(s, s.pose_init, [(0, 0), (1, 0)], (0, 0)) for s in held]
+    poses = {s.id: s.pose_init for s in held}
+    refused = reconstruct_tiles(loaded, [(0, 0)], once, SIZE, None, poses, None, None, previous={(0, 0): first})
+    assert refused[(0, 0)].metrics["warm_kind"] == "reconstruction" and refused[(0, 0)].metrics["iterations"] == 1
 
 
 def test_incremental_tracking_uses_only_samples_near_the_held_map() -> None:

@@ -12,7 +12,8 @@ import pytest
 
 from fusion.errors import FusionError
 from service import schedule
-from service.store.models import FusionJob, JobState, Tile, TileState
+from service.store import tiles
+from service.store.models import FusionJob, JobState, Tile, TileState, utcnow
 from tests.worker_support import FakeAlign, FakeFusion, in_process, upload
 from worker import runner
 from worker.results import Outcome
@@ -99,6 +100,65 @@ def test_the_reconstruction_starts_from_its_tiles_alignment_field(env: Any, monk
     monkeypatch.setattr(runner, "_fuse", fusion)
     assert _run(env) is Outcome.succeeded
     assert fusion.warm == b"field of 0,0"
+
+
+def test_a_refusion_after_a_session_was_added_starts_from_the_tiles_last_reconstruction(
+    env: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The reconstruction keeps its field; a session added later is tracked against it (the frozen map,
+    ``align_track_reconstruction``) and the tile's re-fusion starts from it (``warm_kind`` "reconstruction"). The field is
+    not part of the fingerprint (an unchanged tile is reused); an alignment that trains the tile again
+    makes its own field the warm start."""
+    from fusion.config import FusionConfig
+    from fusion.field import unpack_state
+    from worker import inputs
+    from worker.inputs import plan_alignment, plan_tile
+
+    monkeypatch.setattr(inputs, "fusion_config",  # warm starts on, as in the cpu and paper presets
+                        lambda settings: FusionConfig.preset(settings.fusion_preset).with_(recon_warm_fraction=1 / 3))
+    monkeypatch.setattr(runner, "_align", FakeAlign())
+    monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
+    assert _run(env) is Outcome.succeeded  # alignment
+    env.job_id = _job_and_tile(env)[1].job_id
+    assert _run(env) is Outcome.succeeded  # reconstruction: from the alignment's field, no other yet
+    assert (fusion.warm, fusion.warm_kind) == (b"field of 0,0", "alignment")
+    tile = _job_and_tile(env)[1]
+    kept = tile.recon_field_sha256
+    assert kept and unpack_state(env.app.state.blobs.get(kept))["w"].item() == 1.0
+
+    with env.db() as db:  # nothing changed: the same fingerprint as the version, so the job reuses it
+        env.job_id = schedule.request_fusion(db, 0, 0, settings=env.settings).id
+    assert _run(env) is Outcome.reused
+
+    upload(env, "veh-2/b", 0, [12.0, 10.0, 0.0])
+    with env.db() as db:
+        env.job_id = schedule.request_fusion(db, 0, 0, settings=env.settings).id
+    align = FakeAlign()
+    monkeypatch.setattr(runner, "_align", align)
+    assert _run(env) is Outcome.succeeded  # the new session tracked against the map's reconstruction field
+    assert set(align.frozen) == {(0, 0)} and unpack_state(align.frozen[(0, 0)])["w"].item() == 1.0
+    env.job_id = _job_and_tile(env)[1].job_id
+    with env.db() as db:
+        planned = plan_tile(db, env.settings, 0, 0)
+    assert (planned.warm_sha256, planned.warm_kind) == (kept, "reconstruction")
+    assert _run(env) is Outcome.succeeded
+    assert unpack_state(fusion.warm)["w"].item() == 1.0 and fusion.warm_kind == "reconstruction"
+    tile = _job_and_tile(env)[1]
+    assert tile.recon_field_sha256 not in (None, kept)  # the re-fusion's field is next
+    monkeypatch.setattr(inputs, "fusion_config",  # the switch off: new sessions track the alignment's field
+                        lambda settings: FusionConfig.preset(settings.fusion_preset).with_(
+                            recon_warm_fraction=1 / 3, align_track_reconstruction=False))
+    with env.db() as db:
+        assert plan_alignment(db, env.settings, [(0, 0)]).fields == {(0, 0): tile.align_field_sha256}
+
+    with env.db() as db:  # an alignment trains the tile again: its field, not the stale one, is the start
+        assert tiles.hand_over(db, 0, 0, owner="nobody", job_id=env.job_id, now=utcnow(), field_sha256="f") is False
+        db.get(Tile, (0, 0)).lease_owner = "w"
+        db.commit()
+        assert tiles.hand_over(db, 0, 0, owner="w", job_id=env.job_id, now=utcnow(), field_sha256="f")
+        db.commit()
+        planned = plan_tile(db, env.settings, 0, 0)
+    assert (planned.warm_sha256, planned.warm_kind) == ("f", "alignment")
 
 
 def _sample(name: str, **labels: str) -> float:
