@@ -80,7 +80,8 @@ def _fake_fuse_tile(calls: list, warmed: list | None = None):
 
     warmed = [] if warmed is None else warmed
 
-    def fake(submaps, tile, config, progress=None, border_pins=None, device=None, warm=None):
+    def fake(submaps, tile, config, progress=None, border_pins=None, device=None, warm=None,
+             warm_kind="alignment"):
         calls.append((tile, {s.id: (s.free, s.pose_init) for s in submaps}, border_pins))
         warmed.append(warm is not None)
         border = {side: {"tile": (tile.i, tile.j), "side": side} for side in ("x0", "x1", "y0", "y1")}
