@@ -16,6 +16,7 @@ import pytest
 from sqlalchemy import select, update
 
 from fusion.errors import FusionError
+from fusion.field import unpack_state
 from service import schedule as scheduler
 from service.store.models import FusionJob, JobState, Tile, TileVersion, utcnow
 from tests.worker_support import (
@@ -152,7 +153,8 @@ def test_uploads_during_fusion_are_aligned_then_fused_again(env: Any, fake: Fake
     assert tick(env, 31).scheduled == [(0, 0)]
     align_then_reconstruct(env, (0, 0))
     assert [s.free for s in align.calls[-1][1]] == [False, True]  # the map is held, the new submap aligned
-    assert align.frozen == {(0, 0): b"field of 0,0"}  # ... tracked against the field the first alignment left
+    # ... tracked against the field the tile's first reconstruction left (the fake's first call)
+    assert set(align.frozen) == {(0, 0)} and unpack_state(align.frozen[(0, 0)])["w"].item() == 1.0
     body = env.get("/v1/tiles/0/0").json()
     assert (body["state"], body["version"]) == ("fused", 2)
     assert len(fake.calls[-1][1]) == 2
