@@ -158,17 +158,19 @@ def evaluate_region(ctx: BenchContext, results: dict[tuple[int, int], FusionResu
 def _recon_times(results: dict[tuple[int, int], FusionResult]) -> dict[str, float | None]:
     """Mean wall and CPU seconds (every thread of the process) of the tiles' reconstructions: on a machine
     shared with other jobs the wall time grows with the load, the CPU time much less. Its wall time split:
-    training, extraction, and the rest (the problem: sampling pool, consensus targets)."""
+    training, extraction, and the rest (set-up: the problem, sampling pool, consensus targets)."""
+    runs = [r.metrics for r in results.values()]
+    split = [m for m in runs if {"duration_train_s", "duration_extract_s"} <= m.keys()]
 
-    def mean(key: str) -> float | None:
-        values = [r.metrics[key] for r in results.values() if key in r.metrics]
+    def mean(values: list[float]) -> float | None:
         return float(np.mean(values)) if values else None
 
-    out = {"recon_s_per_tile": mean("duration_s"), "recon_cpu_s_per_tile": mean("cpu_s"),
-           "recon_train_s_per_tile": mean("duration_train_s"), "recon_extract_s_per_tile": mean("duration_extract_s")}
-    parts = (out["recon_s_per_tile"], out["recon_train_s_per_tile"], out["recon_extract_s_per_tile"])
-    out["recon_setup_s_per_tile"] = None if None in parts else parts[0] - parts[1] - parts[2]  # type: ignore[operator]
-    return out
+    return {"recon_s_per_tile": mean([m["duration_s"] for m in runs]),
+            "recon_cpu_s_per_tile": mean([m["cpu_s"] for m in runs if "cpu_s" in m]),
+            "recon_train_s_per_tile": mean([m["duration_train_s"] for m in split]),
+            "recon_extract_s_per_tile": mean([m["duration_extract_s"] for m in split]),
+            "recon_setup_s_per_tile": mean([m["duration_s"] - m["duration_train_s"] - m["duration_extract_s"]
+                                            for m in split])}
 
 
 def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose] | None,
