@@ -198,6 +198,13 @@ class FusionConfig:
     # four-session map 0.962 / 0.838; a lower field rate could not build the new surface). README, "Adding a
     # session ... from the tile's own field".
     refusion_warm_fraction: float = 1 / 3
+    # a tile is fused again for a new submap only where the submap's surface, at its aligned pose, comes
+    # within this of the tile's square (``fusion.tiles.surface_tiles``; the service's reconstruction
+    # fingerprint, the bench's add_session): a submap whose GPS uncertainty or bounding box reaches the
+    # tile but whose faces stay farther out only shapes the field in the margin, which the mesh is not cut
+    # from (the border is pinned by the neighbour it lies in). Exact seed 1, fifth session: 7 tiles touched
+    # by GPS box, 4 by surface within 2 m (the others 0, 0 and 765 vertices within 8 m)
+    refusion_band_m: float = 2.0
     # an incremental alignment tracks new submaps against each tile's last reconstruction field where it has
     # one (trained on every submap held so far, the full schedule) rather than its alignment field (the
     # sessions of the tile's first alignment, a short schedule); false: always the alignment field

@@ -89,6 +89,27 @@ def submap_tiles(
     return tiles_for_box(lo[:2] - grow, hi[:2] + grow, size_m)
 
 
+def surface_tiles(
+    vertices: np.ndarray, faces: np.ndarray, pose: Pose, size_m: float, band_m: float = 0.0
+) -> list[tuple[int, int]]:
+    """Tiles whose square, grown by ``band_m`` (xy, metres, less than the tile size), meets the map-frame xy
+    bounding box of a face of the mesh posed by ``pose`` (local → map), ordered by i then j: where the
+    surface lies, not its GPS uncertainty (:func:`submap_tiles`)."""
+    _check_size(size_m)
+    if not 0.0 <= band_m < size_m:
+        raise ValueError(f"band must be in [0, tile size), not {band_m!r}")
+    if len(faces) == 0:
+        return []
+    xy = pose.apply(np.asarray(vertices, dtype=np.float64))[:, :2][np.asarray(faces)]  # (F, 3, 2)
+    lo = np.floor((xy.min(axis=1) - band_m) / size_m).astype(np.int64)
+    hi = np.floor((xy.max(axis=1) + band_m) / size_m).astype(np.int64)
+    found = {(int(i), int(j)) for i, j in np.unique(lo, axis=0)} | {(int(i), int(j)) for i, j in np.unique(hi, axis=0)}
+    spans = np.any(hi - lo > 1, axis=1) | np.all(hi > lo, axis=1)  # a face over more than two tiles a side,
+    for a, b in zip(lo[spans], hi[spans], strict=True):  # or over a tile corner: every tile of its box
+        found.update((i, j) for i in range(a[0], b[0] + 1) for j in range(a[1], b[1] + 1))
+    return sorted(found)
+
+
 def home_tile(
     mesh_or_point: SemanticMesh | tuple[np.ndarray, np.ndarray] | np.ndarray, pose: Pose, size_m: float
 ) -> tuple[int, int]:

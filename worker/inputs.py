@@ -142,14 +142,21 @@ def _submaps_touching(db: Session, keys: list[tuple[int, int]]) -> list[Submap]:
     return sorted(found.values(), key=lambda s: (s.session_id, s.seq))
 
 
+def shapes_tile(submap: Submap, i: int, j: int) -> bool:
+    """Whether the aligned ``submap``'s surface reaches tile (i, j) at its refined pose (within
+    ``refusion_band_m``; ``Submap.surface_tiles``); one aligned before those were recorded counts."""
+    return submap.surface_tiles is None or [i, j] in submap.surface_tiles
+
+
 def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
     """The aligned submaps of tile (i, j), every one held at its refined pose (the alignment owns the
     poses); those still waiting for an alignment are counted in ``pending`` and left out. The warm start:
     the tile's last reconstruction field (its held submaps have not moved since: alignments after it only
     added submaps) with ``refusion_warm_fraction`` of the steps, else its last alignment field (none when
     the fraction is 0). The fingerprint names the alignment field (where warm starts are on), never the
-    reconstruction's (every version changes it): a tile whose submaps and poses are unchanged is not
-    fused again."""
+    reconstruction's (every version changes it), and only the submaps whose surface reaches the tile
+    (:func:`shapes_tile`): a tile whose submaps and poses are unchanged, or that a new submap only grazes,
+    is not fused again (the grazing submap is in the tile's next fusion, whatever brings it)."""
     tile = TileSpec(i, j, settings.tile_size)
     config = fusion_config(settings)
     submaps = _submaps_touching(db, [(i, j)])
@@ -162,7 +169,9 @@ def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
         warm, kind = row.recon_field_sha256, "reconstruction"
     elif aligned and config.recon_warm_fraction > 0:
         warm = aligned
-    return TileInputs(tile=tile, config=config, rows=rows, fingerprint=fingerprint(tile, config, rows, aligned if config.recon_warm_fraction > 0 else None),
+    shaping = [r for r in rows if shapes_tile(r[0], i, j)]
+    return TileInputs(tile=tile, config=config, rows=rows,
+                      fingerprint=fingerprint(tile, config, shaping, aligned if config.recon_warm_fraction > 0 else None),
                       pending=len(submaps) - len(rows), warm_sha256=warm, warm_kind=kind)
 
 

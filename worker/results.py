@@ -169,8 +169,10 @@ def commit_alignment(
     poses: dict[str, Pose],
     fields: dict[tuple[int, int], str],
     metrics: dict[str, Any],
+    surface: dict[str, list[tuple[int, int]]] | None = None,
 ) -> tuple[Outcome, list[str]]:
-    """ONE transaction: the refined pose of every aligned submap (written once: only where none was),
+    """ONE transaction: the refined pose of every aligned submap (written once: only where none was)
+    with the tiles its surface reaches there (``surface``, by submap id; ``Submap.surface_tiles``),
     a reconstruct job for each of the region's tiles (each tile handed from this lease to its job,
     ``queued``, with the blob of the field trained there, if any), the align job ``succeeded``. Returns
     the outcome and the new jobs to enqueue."""
@@ -180,7 +182,8 @@ def commit_alignment(
             db.execute(
                 update(Submap)
                 .where(Submap.id == submap_id, Submap.pose_refined.is_(None))
-                .values(pose_refined=pose.to_json(), refined_at=now)
+                .values(pose_refined=pose.to_json(), refined_at=now,
+                        surface_tiles=[list(t) for t in surface[submap_id]] if surface and submap_id in surface else None)
             )
         jobs = []
         for i, j in claim.tiles:

@@ -23,6 +23,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.errors import FusionError, FusionLibraryError
+from fusion.tiles import surface_tiles
 from fusion.types import FusedMesh, FusionResult, Pose
 from service.broker import enqueue
 from service.settings import Settings, get_settings
@@ -123,6 +124,7 @@ def _run_alignment(
     with factory() as db:
         inputs = plan_alignment(db, settings, claim.tiles)
     poses: dict[str, Pose] = {}
+    surface: dict[str, list[tuple[int, int]]] = {}
     fields: dict[tuple[int, int], str] = {}
     metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free)}
     if inputs.free:  # none: a re-run after the poses were committed; only the hand-over is left
@@ -132,10 +134,12 @@ def _run_alignment(
         frozen = {key: blobs.get(sha) for key, sha in inputs.fields.items()}
         poses, align_metrics, trained = _align(inputs, keeper, frozen)
         metrics.update(align_metrics)
+        surface = {s.id: surface_tiles(s.mesh.vertices, s.mesh.faces, poses[s.id], settings.tile_size,
+                                       inputs.config.refusion_band_m) for s in inputs.submaps if s.id in poses}
         fields = {key: blobs.put(data) for key, data in trained.items()}  # durable before rows name them
     if keeper.lost.is_set():
         raise LeaseLost(f"lease of job {claim.job_id} lost")
-    outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics)
+    outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics, surface)
     for job_id in jobs:
         enqueue(job_id, settings, JobKind.reconstruct.value)
     return outcome

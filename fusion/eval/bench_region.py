@@ -36,7 +36,7 @@ from fusion.config import FusionConfig
 from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.offline import fuse_tiles, reconstruct_tiles
-from fusion.tiles import tile_bounds
+from fusion.tiles import surface_tiles, tile_bounds
 from fusion.types import FusedMesh, FusionResult, Pose, TileSpec
 
 TARGETS = {"geo_f": 0.92, "sem_f": 0.80, "pose_trans_m": 0.10, "pose_rot_deg": 0.2}
@@ -199,9 +199,9 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]]) -> dict[str, An
     before (every other session aligned from GPS, every tile reconstructed; not timed), then, timed
     (``add_s``), the new session's submaps aligned against the map's frozen fields (its reconstructions',
     ``align_track_reconstruction``) with the others' poses held (``fusion.align``'s incremental mode) and
-    the tiles they touch reconstructed again, each from its own field. Figures are
-    those of the map after the addition; compare ``add_s`` with the ``fused`` row's ``wall_s`` (the full
-    re-fusion of the same data)."""
+    the tiles their surface reaches at the aligned poses (``refusion_band_m``) reconstructed again, each
+    from its own field. Figures are those of the map after the addition; compare ``add_s`` with the
+    ``fused`` row's ``wall_s`` (the full re-fusion of the same data)."""
     from fusion.align import align_region
 
     last = max(s.input.session_id for s in ctx.submaps)
@@ -224,7 +224,8 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]]) -> dict[str, An
         frozen |= {k: r.field_state for k, r in map_before.items() if r.field_state is not None}
     added = align_region(held + arriving, specs, cfg, frozen=frozen)
     poses = before.poses | added.poses
-    touched = sorted({t for s in new for t in s.tiles if t in set(keys)})
+    touched = sorted({t for s in new for t in surface_tiles(s.input.mesh.vertices, s.input.mesh.faces, poses[s.input.id],
+                                                            ctx.tile_size, cfg.refusion_band_m) if t in set(keys)})
     again = reconstruct_tiles(ctx.submaps, touched, cfg, ctx.tile_size, None, poses, None, skipped,
                               previous=map_before, warm=before.fields | added.fields)
     add_s = time.perf_counter() - t0

@@ -154,6 +154,9 @@ class Submap(Base):
     odometry_sigma_rot_deg: Mapped[float] = mapped_column(Float)
     pose_refined: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     refined_at: Mapped[datetime | None] = mapped_column(default=None)
+    # the tiles its surface reaches at the refined pose, [[i, j], ...] (``fusion.tiles.surface_tiles`` with
+    # ``refusion_band_m``; written with the pose): a tile is fused again for this submap only if it is here
+    surface_tiles: Mapped[list[Any] | None] = mapped_column(default=None)
     home_i: Mapped[int] = mapped_column(Integer)
     home_j: Mapped[int] = mapped_column(Integer)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)

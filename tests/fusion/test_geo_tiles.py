@@ -16,6 +16,7 @@ from fusion.tiles import (
     lattice_range,
     posed_bbox,
     submap_tiles,
+    surface_tiles,
     tile_bounds,
     tile_of,
     tiles_for_box,
@@ -136,6 +137,30 @@ def test_submap_tiles_grow_by_uncertainty() -> None:
     near_border = Pose(np.array([58.9, 32.0, 0.0]), IDENTITY_Q)
     assert submap_tiles(lo, hi, near_border, Sigma(0.0, 0.0), 64) == [(0, 0)]
     assert submap_tiles(lo, hi, near_border, Sigma(0.0, 2.0), 64) == [(0, 0), (1, 0)]
+
+
+def test_surface_tiles_follow_the_posed_faces_not_the_box() -> None:
+    # an L of two thin strips: its bounding box covers tile (1, 1), its faces do not come near it
+    v = np.array([[0, 0, 0], [100, 0, 0], [100, 2, 0], [0, 2, 0], [0, 2, 0], [2, 2, 0], [2, 100, 0], [0, 100, 0]],
+                 dtype=float)
+    f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    at = Pose(np.array([10.0, 10.0, 0.0]), IDENTITY_Q)  # strips along y = 10..12 and x = 10..12
+    lo, hi = posed_bbox(v.min(0), v.max(0), at)
+    assert (1, 1) in tiles_for_box(lo[:2], hi[:2], 64)
+    assert surface_tiles(v, f, at, 64) == [(0, 0), (0, 1), (1, 0)]
+    # a band reaches a tile only when the faces come within it of the tile's square
+    near = Pose(np.array([10.0, 60.0, 0.0]), IDENTITY_Q)  # the x strip at y = 60..62, 2 m below tile row 1
+    assert (1, 1) not in surface_tiles(v, f, near, 64, band_m=1.9)
+    assert (1, 1) in surface_tiles(v, f, near, 64, band_m=2.1)
+    # the pose moves the surface: turned by 180° about z the strips lie in negative x and y
+    assert surface_tiles(v, f, Pose(np.array([-1.0, -1.0, 0.0]), yaw(180)), 64) == [(-2, -1), (-1, -2), (-1, -1)]
+    # one big face over a tile corner reaches all four tiles, and every tile its box spans
+    big = np.array([[60, 60, 0], [70, 60, 0], [60, 200, 0]], dtype=float)
+    assert surface_tiles(big, np.array([[0, 1, 2]]), Pose(np.zeros(3), IDENTITY_Q), 64) == [
+        (0, 0), (0, 1), (0, 2), (0, 3), (1, 0), (1, 1), (1, 2), (1, 3)]
+    assert surface_tiles(v, f[:0], at, 64) == []
+    with pytest.raises(ValueError, match="band"):
+        surface_tiles(v, f, at, 64, band_m=64.0)
 
 
 def test_home_tile_of_posed_centre() -> None:

@@ -161,6 +161,45 @@ def test_a_refusion_after_a_session_was_added_starts_from_the_tiles_last_reconst
     assert (planned.warm_sha256, planned.warm_kind) == ("f", "alignment")
 
 
+def test_a_tile_a_new_session_only_grazes_is_reused_not_fused_again(env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A submap dirties every tile its GPS uncertainty reaches; the alignment records where its surface
+    lies at the refined pose (``Submap.surface_tiles``, within ``refusion_band_m``), and only those tiles
+    change their fingerprint: a tile the new surface stays away from keeps its version."""
+    from service.store.models import Submap, SubmapTile
+
+    monkeypatch.setattr(runner, "_align", FakeAlign())
+    monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
+    assert _run(env) is Outcome.succeeded
+    env.job_id = _job_and_tile(env)[1].job_id
+    assert _run(env) is Outcome.succeeded and _job_and_tile(env)[1].version == 1
+
+    def add(session: str, x: float) -> dict[str, Outcome]:
+        """Upload a 16 m street at x, align its region, run each tile's reconstruct job."""
+        sid = upload(env, session, 0, [x, 10.0, 0.0])["id"]
+        with env.db() as db:
+            assert {(t.i, t.j) for t in db.query(SubmapTile).filter_by(submap_id=sid)} == {(-1, 0), (0, 0)}
+            env.job_id = schedule.request_fusion(db, 0, 0, settings=env.settings).id
+        assert _run(env) is Outcome.succeeded  # the alignment
+        outcomes = {}
+        for key in [(-1, 0), (0, 0)]:
+            with env.db() as db:
+                env.job_id = db.get(Tile, key).job_id
+            outcomes[f"{key[0]}_{key[1]}"] = _run(env)
+        with env.db() as db:
+            outcomes["surface"] = db.get(Submap, sid).surface_tiles
+        return outcomes
+
+    # surface x ∈ [-18.5, -2.5]: 2.5 m west of tile (0, 0), beyond the tiny preset's 2 m band; its GPS
+    # uncertainty (2 m, 2°: +2.8 m) reaches the tile
+    assert add("veh-2/grazes", -18.5) == {"-1_0": Outcome.succeeded, "0_0": Outcome.reused, "surface": [[-1, 0]]}
+    assert _job_and_tile(env)[1].version == 1
+    # surface to x = -1.5: within the band, the tile is fused again, with both new submaps
+    assert add("veh-3/reaches", -17.5) == {"-1_0": Outcome.succeeded, "0_0": Outcome.succeeded,
+                                           "surface": [[-1, 0], [0, 0]]}
+    assert _job_and_tile(env)[1].version == 2
+    assert {s.session_id for s in fusion.calls[-1][1]} == {"veh-1/a", "veh-2/grazes", "veh-3/reaches"}
+
+
 def _sample(name: str, **labels: str) -> float:
     from worker import metrics
 
