@@ -1,4 +1,4 @@
-"""The ``fleetmap`` command line: serve, db, token, worker, demo, map-image, and the fusion tools.
+"""The ``fleetmap`` command line: serve, db, token, blobs, worker, demo, map-image, and the fusion tools.
 
 Errors print one line on stderr and exit with status 2. Subcommands that need torch or Celery
 (worker, demo, simulate/fuse/bench) are imported only when run.
@@ -136,6 +136,28 @@ def cmd_token_revoke(args: argparse.Namespace) -> int:
     return _with_db(action)
 
 
+def cmd_blobs_gc(args: argparse.Namespace) -> int:
+    from datetime import timedelta
+
+    from service.store.blobs import blob_store_from_url
+    from service.store.gc import collect, referenced
+
+    if not args.min_age_hours >= 0:
+        raise CliError(f"--min-age-hours must be >= 0, not {args.min_age_hours}")
+    blobs = blob_store_from_url(get_settings().resolved_blob_url)
+
+    def action(db: Any) -> int:
+        keep = referenced(db)
+        db.rollback()  # no transaction held open over the listing
+        report = collect(blobs, keep, min_age=timedelta(hours=args.min_age_hours), dry_run=args.dry_run)
+        for sha in report.removed if args.verbose else []:
+            print(sha)
+        print(report.summary())
+        return 0
+
+    return _with_db(action)
+
+
 def _passthrough(target: str) -> Callable[[argparse.Namespace], int]:
     def run(args: argparse.Namespace) -> int:
         module_name, func_name = target.split(":")
@@ -172,6 +194,16 @@ def build_parser() -> argparse.ArgumentParser:
     revoke = token_sub.add_parser("revoke", help="revoke tokens by name or id")
     revoke.add_argument("token", metavar="NAME|ID")
     revoke.set_defaults(func=cmd_token_revoke)
+
+    blobs = sub.add_parser("blobs", help="blob store maintenance")
+    blobs_sub = blobs.add_subparsers(dest="blobs_command", required=True, metavar="ACTION")
+    gc = blobs_sub.add_parser("gc", help="remove blobs no row names (superseded fields, unfinished writes)")
+    gc.add_argument("--min-age-hours", type=float, default=24.0,
+                    help="only blobs last written longer ago than this (default 24: a job or upload between "
+                         "its blob and its row is never touched)")
+    gc.add_argument("--dry-run", action="store_true", help="report what would be removed, remove nothing")
+    gc.add_argument("--verbose", action="store_true", help="print the sha256 of each blob removed")
+    gc.set_defaults(func=cmd_blobs_gc)
 
     for name, (target, help_text) in PASSTHROUGH.items():
         p = sub.add_parser(name, help=help_text, add_help=False)

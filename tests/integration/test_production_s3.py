@@ -86,6 +86,26 @@ def test_put_file(store: S3BlobStore, tmp_path: Path) -> None:
     assert store.get(sha) == path.read_bytes()
 
 
+def test_list_and_delete_for_the_garbage_collection(store: S3BlobStore) -> None:
+    from datetime import UTC, datetime, timedelta
+
+    from service.store.gc import collect
+
+    kept, gone = store.put(b"named by a row"), store.put(b"named by none")
+    # a foreign object under the prefix and one outside it are not blobs of this store
+    store.client.put_object(Bucket=store.bucket, Key="tests/prefix/notes.txt", Body=b"x")
+    store.client.put_object(Bucket=store.bucket, Key=f"elsewhere/{gone[:2]}/{gone[2:4]}/{gone}", Body=b"y")
+    listed = {b.sha256: b for b in store.list_blobs()}
+    assert {kept, gone} <= set(listed) and listed[gone].size == len(b"named by none")
+    assert all(store.key(sha).startswith("tests/prefix/") for sha in listed)
+    assert abs(listed[kept].modified - datetime.now(UTC)) < timedelta(minutes=5)
+
+    report = collect(store, {kept}, now=datetime.now(UTC) + timedelta(days=2))
+    assert gone in report.removed and kept not in report.removed
+    assert store.exists(kept) and not store.exists(gone)
+    store.delete(gone)  # idempotent
+
+
 def test_ping(store: S3BlobStore, s3_endpoint: str) -> None:
     store.ping()
     with pytest.raises(BlobStoreError):

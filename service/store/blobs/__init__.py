@@ -1,4 +1,4 @@
-"""Content-addressed blob storage (submap meshes, fused tile meshes): ``base`` (interface, errors,
+"""Content-addressed blob storage (submap meshes, fused tile meshes, fields): ``base`` (interface, errors,
 hashes), ``fs`` (files), ``s3`` (S3-compatible object store). :func:`blob_store_from_url` picks one."""
 
 from __future__ import annotations
@@ -7,6 +7,7 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 from service.store.blobs.base import (
+    BlobInfo,
     BlobNotFoundError,
     BlobStore,
     BlobStoreUnavailableError,
@@ -16,7 +17,7 @@ from service.store.blobs.base import (
 from service.store.blobs.fs import FileBlobStore
 
 __all__ = [
-    "BlobNotFoundError", "BlobStore", "BlobStoreUnavailableError", "FileBlobStore", "blob_store_from_url",
+    "BlobInfo", "BlobNotFoundError", "BlobStore", "BlobStoreUnavailableError", "FileBlobStore", "blob_store_from_url",
     "sha256_bytes", "sha256_file",
 ]
 

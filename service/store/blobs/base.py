@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import hashlib
 import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import BinaryIO, Protocol, runtime_checkable
 
@@ -21,6 +24,15 @@ class BlobNotFoundError(KeyError):
 
 class BlobStoreUnavailableError(OSError):
     """The blob store cannot be reached or answered wrongly (the API answers 503)."""
+
+
+@dataclass(frozen=True)
+class BlobInfo:
+    """One stored blob: its sha256 (hex), size in bytes and when it was last written (UTC)."""
+
+    sha256: str
+    size: int
+    modified: datetime
 
 
 @runtime_checkable
@@ -48,6 +60,15 @@ class BlobStore(Protocol):
         ...
 
     def exists(self, sha256: str) -> bool: ...
+
+    def list_blobs(self) -> Iterator[BlobInfo]:
+        """Every stored blob (any order). A put of content already stored counts as a write."""
+        ...
+
+    def delete(self, sha256: str) -> None:
+        """Remove the blob (idempotent). Only for garbage collection of unreferenced blobs
+        (``service.store.gc``)."""
+        ...
 
     def ping(self) -> None:
         """Raise if the store is unreachable or not writable."""

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import BinaryIO
 
-from service.store.blobs.base import CHUNK, SHA256_HEX, BlobNotFoundError, sha256_bytes, sha256_file
+from service.store.blobs.base import CHUNK, SHA256_HEX, BlobInfo, BlobNotFoundError, sha256_bytes, sha256_file
 
 
 def _fsync_dir(path: Path) -> None:
@@ -34,6 +35,9 @@ class FileBlobStore:
     def _write(self, sha256: str, writer: Callable[[BinaryIO], object]) -> str:
         target = self._path(sha256)
         if target.exists():
+            # a new write of stored content: its age restarts, so the garbage collection, which only
+            # removes blobs older than its grace period, cannot take it before the row naming it commits
+            os.utime(target)
             return sha256
         folder = target.parent
         folder.mkdir(parents=True, exist_ok=True)
@@ -81,6 +85,21 @@ class FileBlobStore:
             return self._path(sha256).is_file()
         except BlobNotFoundError:
             return False
+
+    def list_blobs(self) -> Iterator[BlobInfo]:
+        base = self.root / "sha256"
+        if not base.is_dir():
+            return
+        for path in base.glob("*/*/*"):
+            if SHA256_HEX.match(path.name):
+                try:
+                    stat = path.stat()
+                except FileNotFoundError:  # deleted meanwhile
+                    continue
+                yield BlobInfo(path.name, stat.st_size, datetime.fromtimestamp(stat.st_mtime, UTC))
+
+    def delete(self, sha256: str) -> None:
+        self._path(sha256).unlink(missing_ok=True)
 
     def ping(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)

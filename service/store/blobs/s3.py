@@ -17,6 +17,7 @@ import io
 import logging
 import os
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 from urllib.parse import urlparse
@@ -27,6 +28,7 @@ from botocore.exceptions import BotoCoreError, ClientError
 
 from service.store.blobs.base import (
     SHA256_HEX,
+    BlobInfo,
     BlobNotFoundError,
     BlobStoreUnavailableError,
     sha256_bytes,
@@ -199,6 +201,19 @@ class S3BlobStore:
     def size(self, sha256: str) -> int | None:
         """Stored size of blob ``sha256`` in bytes, None if absent."""
         return self._head_size(sha256)
+
+    def list_blobs(self) -> Iterator[BlobInfo]:
+        """Every blob under the store's prefix (paginated listing)."""
+        try:
+            pages = self.client.get_paginator("list_objects_v2").paginate(
+                Bucket=self.bucket, Prefix=f"{self.prefix}/" if self.prefix else "")
+            for page in pages:
+                for obj in page.get("Contents", []):
+                    name = obj["Key"].rsplit("/", 1)[-1]
+                    if SHA256_HEX.match(name) and obj["Key"] == self.key(name):
+                        yield BlobInfo(name, int(obj["Size"]), obj["LastModified"])
+        except (ClientError, BotoCoreError) as exc:
+            raise BlobStoreError(f"s3 listing of {self.bucket!r} failed: {exc}") from exc
 
     def delete(self, sha256: str) -> None:
         """Remove blob ``sha256`` (idempotent). Only for garbage collection of unreferenced blobs."""
