@@ -37,8 +37,11 @@ class FileBlobStore:
         if target.exists():
             # a new write of stored content: its age restarts, so the garbage collection, which only
             # removes blobs older than its grace period, cannot take it before the row naming it commits
-            os.utime(target)
-            return sha256
+            try:
+                os.utime(target)
+                return sha256
+            except FileNotFoundError:  # the collection took it just now: write it again
+                pass
         folder = target.parent
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp_name = tempfile.mkstemp(prefix=".tmp-", dir=folder)
