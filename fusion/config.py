@@ -321,6 +321,8 @@ class FusionConfig:
             raise ValueError(f"consensus_overhang_m must be >= 0 (0: off), got {self.consensus_overhang_m}")
         if self.thin_inflate_m < 0:
             raise ValueError(f"thin_inflate_m must be >= 0 (0: off), got {self.thin_inflate_m}")
+        if not self.refusion_band_m >= 0:
+            raise ValueError(f"refusion_band_m must be >= 0, got {self.refusion_band_m}")
         for option in ("consensus_movable", "thin_classes"):
             unknown = [name for name in getattr(self, option) if name not in LABEL_BY_NAME]
             if unknown:

@@ -92,12 +92,12 @@ def submap_tiles(
 def surface_tiles(
     vertices: np.ndarray, faces: np.ndarray, pose: Pose, size_m: float, band_m: float = 0.0
 ) -> list[tuple[int, int]]:
-    """Tiles whose square, grown by ``band_m`` (xy, metres, less than the tile size), meets the map-frame xy
+    """Tiles whose square, grown by ``band_m`` (xy, metres, >= 0), meets the map-frame xy
     bounding box of a face of the mesh posed by ``pose`` (local → map), ordered by i then j: where the
     surface lies, not its GPS uncertainty (:func:`submap_tiles`)."""
     _check_size(size_m)
-    if not 0.0 <= band_m < size_m:
-        raise ValueError(f"band must be in [0, tile size), not {band_m!r}")
+    if not (math.isfinite(band_m) and band_m >= 0.0):
+        raise ValueError(f"band must be a finite number of metres >= 0, not {band_m!r}")
     if len(faces) == 0:
         return []
     xy = pose.apply(np.asarray(vertices, dtype=np.float64))[:, :2][np.asarray(faces)]  # (F, 3, 2)

@@ -159,8 +159,11 @@ def test_surface_tiles_follow_the_posed_faces_not_the_box() -> None:
     assert surface_tiles(big, np.array([[0, 1, 2]]), Pose(np.zeros(3), IDENTITY_Q), 64) == [
         (0, 0), (0, 1), (0, 2), (0, 3), (1, 0), (1, 1), (1, 2), (1, 3)]
     assert surface_tiles(v, f[:0], at, 64) == []
+    # a band wider than a tile reaches the tiles beyond the next one too
+    assert surface_tiles(big, np.array([[0, 1, 2]]), Pose(np.zeros(3), IDENTITY_Q), 64, band_m=70.0) == [
+        (i, j) for i in range(-1, 3) for j in range(-1, 5)]
     with pytest.raises(ValueError, match="band"):
-        surface_tiles(v, f, at, 64, band_m=64.0)
+        surface_tiles(v, f, at, 64, band_m=-1.0)
 
 
 def test_home_tile_of_posed_centre() -> None:
