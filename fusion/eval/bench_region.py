@@ -194,47 +194,60 @@ def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose]
     return figs
 
 
-def _add_session(ctx: BenchContext, keys: list[tuple[int, int]]) -> dict[str, Any]:
-    """The last session arriving in a map the others were fused into (as the service runs it): the map
-    before (every other session aligned from GPS, every tile reconstructed; not timed), then, timed
-    (``add_s``), the new session's submaps aligned against the map's frozen fields (its reconstructions',
-    ``align_track_reconstruction``) with the others' poses held (``fusion.align``'s incremental mode) and
-    the tiles their surface reaches at the aligned poses (``refusion_band_m``) reconstructed again, each
-    from its own field. Figures are those of the map after the addition; compare ``add_s`` with the
+def _add_session(ctx: BenchContext, keys: list[tuple[int, int]], count: int = 1) -> dict[str, Any]:
+    """The last ``count`` sessions arriving one after the other in a map the others were fused into (as the
+    service runs it): the map before (every other session aligned from GPS, every tile reconstructed; not
+    timed), then for each arriving session, timed (``add_s``), its submaps aligned against the map's frozen
+    fields (its reconstructions', ``align_track_reconstruction``) with every earlier pose held
+    (``fusion.align``'s incremental mode) and the tiles their surface reaches at the aligned poses
+    (``refusion_band_m``) reconstructed again, each from its own field. Figures are those of the map after
+    the last addition (``additions``: each one's times); compare ``add_s`` (the last addition's) with the
     ``fused`` row's ``wall_s`` (the full re-fusion of the same data)."""
     from fusion.align import align_region
 
-    last = max(s.input.session_id for s in ctx.submaps)
-    old = [s for s in ctx.submaps if s.input.session_id != last]
-    new = [s for s in ctx.submaps if s.input.session_id == last]
-    if not old:
-        raise ValueError("add_session needs two sessions or more")
+    order = sorted({s.input.session_id for s in ctx.submaps})
+    arriving_ids = order[-count:]
+    present = [s for s in ctx.submaps if s.input.session_id not in arriving_ids]
+    if not present or len(arriving_ids) < count:
+        raise ValueError(f"adding {count} session(s) needs {count + 1} sessions or more")
     cfg, specs = ctx.config, [TileSpec(i, j, ctx.tile_size) for i, j in keys]
     skipped: dict[str, str] = {}
     t0 = time.perf_counter()
-    before = align_region([replace(s.input, pose_init=s.pose_gps, free=True) for s in old], specs, cfg)
-    map_before = reconstruct_tiles(old, keys, cfg, ctx.tile_size, None, before.poses, None, skipped,
-                                   warm=before.fields)
+    before = align_region([replace(s.input, pose_init=s.pose_gps, free=True) for s in present], specs, cfg)
+    fused = reconstruct_tiles(present, keys, cfg, ctx.tile_size, None, before.poses, None, skipped,
+                              warm=before.fields)
     before_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    held = [replace(s.input, pose_init=before.poses[s.input.id], free=False) for s in old]
-    arriving = [replace(s.input, pose_init=s.pose_gps, free=True) for s in new]
-    frozen = dict(before.fields)
-    if cfg.align_track_reconstruction:
-        frozen |= {k: r.field_state for k, r in map_before.items() if r.field_state is not None}
-    added = align_region(held + arriving, specs, cfg, frozen=frozen)
-    poses = before.poses | added.poses
-    touched = sorted({t for s in new for t in surface_tiles(s.input.mesh.vertices, s.input.mesh.faces, poses[s.input.id],
-                                                            ctx.tile_size, cfg.refusion_band_m) if t in set(keys)})
-    again = reconstruct_tiles(ctx.submaps, touched, cfg, ctx.tile_size, None, poses, None, skipped,
-                              previous=map_before, warm=before.fields | added.fields)
-    add_s = time.perf_counter() - t0
-    results = map_before | again
-    figs = evaluate_region(ctx, results, poses) | seam_gaps(results, ctx.tile_size, cfg.extract_voxel_m)
-    return figs | _pose_figures(ctx, poses) | _recon_times(again) | {
-        "wall_s": add_s, "add_s": add_s, "align_s": added.metrics["duration_s"], "tiles_refused": len(again),
-        "tiles_fused": len(results), "before_s": before_s, "new_session": last, "new_submaps": len(new),
-        "skipped": skipped, "alignment": [added.metrics]}
+    poses, aligned_fields = dict(before.poses), dict(before.fields)  # the tiles' alignment fields, as stored
+    additions: list[dict[str, Any]] = []
+    for sid in arriving_ids:
+        new = [s for s in ctx.submaps if s.input.session_id == sid]
+        t0 = time.perf_counter()
+        held = [replace(s.input, pose_init=poses[s.input.id], free=False) for s in present]
+        arriving = [replace(s.input, pose_init=s.pose_gps, free=True) for s in new]
+        frozen = dict(aligned_fields)
+        if cfg.align_track_reconstruction:
+            frozen |= {k: r.field_state for k, r in fused.items() if r.field_state is not None}
+        added = align_region(held + arriving, specs, cfg, frozen=frozen)
+        poses |= added.poses
+        aligned_fields |= {k: f for k, f in added.fields.items() if k not in frozen}  # tiles new to the map
+        present = present + new
+        touched = sorted({t for s in new for t in surface_tiles(s.input.mesh.vertices, s.input.mesh.faces,
+                                                                poses[s.input.id], ctx.tile_size, cfg.refusion_band_m)
+                          if t in set(keys)})
+        again = reconstruct_tiles(present, touched, cfg, ctx.tile_size, None, poses, None, skipped,
+                                  previous=fused, warm=aligned_fields)
+        fused = fused | again
+        additions.append({"session": sid, "submaps": len(new), "add_s": time.perf_counter() - t0,
+                          "align_s": added.metrics["duration_s"], "tiles_refused": len(again),
+                          "refused": [list(k) for k in sorted(again)],
+                          "alignment": added.metrics} | _recon_times(again))
+    last = additions[-1]
+    figs = evaluate_region(ctx, fused, poses) | seam_gaps(fused, ctx.tile_size, cfg.extract_voxel_m)
+    return figs | _pose_figures(ctx, poses) | {k: v for k, v in last.items() if k.startswith("recon_")} | {
+        "wall_s": last["add_s"], "add_s": last["add_s"], "align_s": last["align_s"],
+        "tiles_refused": last["tiles_refused"], "tiles_fused": len(fused), "before_s": before_s,
+        "new_session": last["session"], "new_submaps": last["submaps"], "additions": additions,
+        "skipped": skipped, "alignment": [last["alignment"]]}
 
 
 def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, config: Any = None) -> dict[str, Any]:
@@ -294,15 +307,18 @@ def format_region_table(report: dict[str, Any]) -> str:
                  f"of {report['tile_size_m']:g} m, sensor {report.get('sensor', 'exact')}, preset {report['preset']}, seed {report['seed']}, "
                  f"simulate {report['simulate_s']:.0f} s, peak RSS {report['memory']['peak_rss_mib']:.0f} MiB")
     fused = report["rows"].get("fused", {})
-    add = report["rows"].get("add_session")
-    if add:
-        share = add["add_s"] / fused["wall_s"] if fused.get("wall_s") else None
-        lines.append(f"  add_session: session {add['new_session']} ({add['new_submaps']} submaps) added to the map of the "
-                     f"others in {add['add_s']:.0f} s (alignment {add['align_s']:.0f} s, {add['tiles_refused']} tiles "
-                     f"re-fused), {fmt(share, '.0%')} of the full fusion's {fmt(fused.get('wall_s'), '.0f')} s "
-                     f"(target <= 40 %); the map before: {add['before_s']:.0f} s; a re-fused tile: train "
-                     f"{fmt(add.get('recon_train_s_per_tile'), '.1f')} s, extract {fmt(add.get('recon_extract_s_per_tile'), '.1f')} s, "
-                     f"set-up {fmt(add.get('recon_setup_s_per_tile'), '.1f')} s")
+    for name in ("add_session", "add_sessions"):
+        add = report["rows"].get(name)
+        if not add:
+            continue
+        for a in add.get("additions", []):
+            share = a["add_s"] / fused["wall_s"] if fused.get("wall_s") else None
+            lines.append(f"  {name}: session {a['session']} ({a['submaps']} submaps) added to the map in {a['add_s']:.0f} s "
+                         f"(alignment {a['align_s']:.0f} s, {a['tiles_refused']} tiles re-fused), {fmt(share, '.0%')} of the "
+                         f"full fusion's {fmt(fused.get('wall_s'), '.0f')} s (target <= 40 %); a re-fused tile: train "
+                         f"{fmt(a.get('recon_train_s_per_tile'), '.1f')} s, extract {fmt(a.get('recon_extract_s_per_tile'), '.1f')} s, "
+                         f"set-up {fmt(a.get('recon_setup_s_per_tile'), '.1f')} s")
+        lines.append(f"  {name}: the map before: {add['before_s']:.0f} s")
     for key, target in TARGETS.items():
         v = fused.get(key)
         ok = None if v is None else (v >= target if key in ("geo_f", "sem_f") else v <= target)
@@ -319,7 +335,8 @@ def _concat(ctx: BenchContext, at_gps: bool) -> dict[str, Any]:
     return scoring.score_aligned_and_absolute(ctx.points, mesh, gauge)
 
 
-ROWS = ("gps", "init", "coarse", "concat", "concat_gps", "fused", "add_session", "oracle", "icp", "gicp")
+ROWS = ("gps", "init", "coarse", "concat", "concat_gps", "fused", "add_session", "add_sessions", "oracle", "icp",
+        "gicp")
 
 # ``fleetmap bench --ablation components`` (multi-tile): one fused row per method component, switched
 # against the default config (on → off, or off → on for a candidate not yet the default), on the same data
@@ -389,8 +406,8 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
             report_rows[name] = _concat(ctx, at_gps=name == "concat_gps")
         elif name == "fused":
             report_rows[name] = _fuse(ctx, keys, None)
-        elif name == "add_session":
-            report_rows[name] = _add_session(ctx, keys)
+        elif name in ("add_session", "add_sessions"):  # the last session; the last two, one after the other
+            report_rows[name] = _add_session(ctx, keys, 1 if name == "add_session" else 2)
         elif name == "oracle":
             report_rows[name] = _fuse(ctx, keys, dict(ctx.truth.poses))
         elif name in ("icp", "gicp"):

@@ -143,10 +143,39 @@ def test_add_session_aligns_only_the_new_session_and_refuses_only_its_tiles(tmp_
     align = row["alignment"][0]
     assert row["new_session"] == last and row["new_submaps"] == len(new) > 0
     assert align["incremental"] and align["num_free"] == len(new) < align["num_submaps"]
-    touched = {t for s in new for t in s.tiles if t in keys}
-    assert row["tiles_refused"] == len(touched) >= 1 and row["tiles_fused"] == 2
+    # re-fused: the tiles the new surface reaches, at most those its GPS uncertainty reaches (which dirty them)
+    refused = {tuple(k) for k in row["additions"][0]["refused"]}
+    assert refused <= {t for s in new for t in s.tiles} and row["tiles_refused"] == len(refused) >= 1
+    assert row["tiles_fused"] == 2
     # the tiny preset on a 64 m × 32 m world maps coarsely (the full fusion: geo F 0.43); what must hold is that
     # the addition leaves a map (a surface) and poses better than the uploads' GPS (0.12 m vs 0.52 m, seed 6)
     gps = bench_region._pose_figures(ctx, {s.input.id: s.pose_gps for s in ctx.submaps})
     assert row["recon_cpu_s_per_tile"] > 0  # process CPU time beside the wall time (shared machines)
     assert row["add_s"] > 0 and row["geo_f"] > 0.2 and row["pose_trans_m"] < 0.5 * gps["pose_trans_m"]
+
+
+@pytest.mark.timeout(300)
+def test_add_sessions_adds_the_last_two_one_after_the_other(tmp_path) -> None:  # noqa: ANN001
+    """The ``add_sessions`` row: the second-last session is added to a map of the others, then the last to
+    that map; each addition frees only its own submaps, the second holds the first's aligned poses."""
+    from fusion.eval.bench_context import prepare
+    from fusion.eval.synth.fleet import FleetParams
+    from fusion.eval.synth.simulate import simulate
+    from fusion.eval.synth.world import WorldParams
+
+    simulate(tmp_path, seed=6, sessions=3, gps_noise=(0.5, 0.5), sensor="exact",
+             world_params=WorldParams(core_max=(64.0, 32.0), margin=10.0, ground_res=0.5),
+             fleet_params=FleetParams(submap_length=15.0, sensor_range=10.0, submap_res=0.8, drive_margin=2.0))
+    config = FusionConfig.preset("tiny").with_(coarse_register=False)
+    ctx = prepare(tmp_path, config, tile_size=32.0, region=((0.0, 0.0), (64.0, 32.0)))
+    row = bench_region._add_session(ctx, [(0, 0), (1, 0)], count=2)
+    order = sorted({s.input.session_id for s in ctx.submaps})
+    size = {sid: sum(s.input.session_id == sid for s in ctx.submaps) for sid in order}
+    first, second = row["additions"]
+    assert (first["session"], second["session"]) == (order[1], order[2]) and row["new_session"] == order[2]
+    assert first["alignment"]["num_free"] == size[order[1]] and first["alignment"]["num_submaps"] == size[order[0]] + size[order[1]]
+    assert second["alignment"]["num_free"] == size[order[2]] and second["alignment"]["num_submaps"] == len(ctx.submaps)
+    assert second["alignment"]["incremental"] and row["add_s"] == second["add_s"] > 0
+    assert row["geo_f"] > 0.2 and row["poses"] == len(ctx.submaps)
+    with pytest.raises(ValueError, match="needs 4 sessions"):
+        bench_region._add_session(ctx, [(0, 0), (1, 0)], count=3)
