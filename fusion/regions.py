@@ -82,3 +82,11 @@ def region_of(regions_list: Iterable[Region], tile: Tile) -> Region | None:
         if tuple(tile) in r.tiles:
             return r
     return None
+
+
+def needs_realignment(sessions: int, incremental: int, share: float) -> bool:
+    """Whether an alignment adding sessions to a region should re-align the region jointly: the region's
+    ``sessions`` (those with a submap in it, the arriving ones included) of which ``incremental`` were, or
+    are about to be, aligned against a held map; at least ``share`` of them (``FusionConfig.realign_share``).
+    A region of one session has nothing to re-align."""
+    return sessions >= 2 and incremental > 0 and incremental >= share * sessions

@@ -22,13 +22,14 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import and_, or_, select, tuple_, update
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.sql.elements import ColumnElement
 
-from fusion.regions import Region, regions
+from fusion.config import FusionConfig
+from fusion.regions import Region, needs_realignment, regions
 from service.broker import enqueue
-from service.settings import Settings, get_settings
+from service.settings import Settings, fusion_config, get_settings
 from service.store import tiles
 from service.store.models import (
     FusionJob,
@@ -102,21 +103,49 @@ def _queue_tile(
 
 
 def _queue_alignment(
-    db: Session, region: Region, condition: ColumnElement[bool], trigger: str, now: datetime
+    db: Session, region: Region, condition: ColumnElement[bool], trigger: str, now: datetime, settings: Settings
 ) -> FusionJob | None:
     """Move every tile of ``region`` to ``queued`` under one new align job if ``condition`` holds for
-    each; commit. None (nothing written) if one of them is not ready."""
+    each; commit. None (nothing written) if one of them is not ready. A region grown incrementally past
+    ``realign_share`` gets a joint re-alignment instead (:func:`alignment_scope`): its job covers every tile
+    of the submaps touching the region, those not in ``region`` taken when idle."""
+    keys, realign = alignment_scope(db, region, fusion_config(settings))
+    db.rollback()  # end the read transaction before writing (SQLite: no stale snapshot)
     job_id = new_id()
-    for i, j in region.tiles:
-        if not tiles.queue(db, i, j, job_id=job_id, condition=condition, now=now):
+    idle = Tile.state.not_in(tiles.BUSY_STATES)
+    for i, j in keys:
+        if not tiles.queue(db, i, j, job_id=job_id, condition=condition if (i, j) in region.tiles else idle, now=now):
             db.rollback()
             return None
-    (i0, j0) = region.tiles[0]
-    job = FusionJob(id=job_id, tile_i=i0, tile_j=j0, kind=JobKind.align.value, tiles=[list(t) for t in region.tiles],
-                    state=JobState.queued.value, trigger=trigger, created_at=now, enqueued_at=now)
+    (i0, j0) = keys[0]
+    job = FusionJob(id=job_id, tile_i=i0, tile_j=j0, kind=JobKind.align.value, tiles=[list(t) for t in keys],
+                    realign=realign, state=JobState.queued.value, trigger=trigger, created_at=now, enqueued_at=now)
     db.add(job)
     db.commit()
     return job
+
+
+def alignment_scope(db: Session, region: Region, config: FusionConfig) -> tuple[list[tuple[int, int]], bool]:
+    """The tiles an alignment of ``region`` (a region of unaligned submaps) covers, and whether it re-aligns
+    them jointly: when at least ``config.realign_share`` of the sessions with a submap in the region's
+    tiles are new or were aligned incrementally (``fusion.regions.needs_realignment``), every tile of those
+    submaps, else the region's own tiles."""
+    own = sorted(region.tiles)
+    rows = db.execute(
+        select(Submap.id, Submap.session_id, Submap.pose_refined.is_not(None), Submap.aligned_incrementally)
+        .join(SubmapTile, SubmapTile.submap_id == Submap.id)
+        .where(tuple_(SubmapTile.i, SubmapTile.j).in_(own))
+        .distinct()
+    ).all()
+    if not any(aligned for _, _, aligned, _ in rows):
+        return own, False  # nothing held: the alignment is joint already
+    sessions = {session for _, session, _, _ in rows}
+    incremental = {session for _, session, aligned, inc in rows if not aligned or inc}
+    if not needs_realignment(len(sessions), len(incremental), config.realign_share):
+        return own, False
+    ids = sorted({submap_id for submap_id, _, _, _ in rows})
+    keys = db.execute(select(SubmapTile.i, SubmapTile.j).where(SubmapTile.submap_id.in_(ids)).distinct()).all()
+    return sorted({(int(i), int(j)) for i, j in keys} | set(own)), True
 
 
 def unaligned_regions(db: Session) -> list[Region]:
@@ -147,9 +176,10 @@ def schedule_due_tiles(db: Session, now: datetime, settings: Settings) -> list[F
     jobs = []
     for region in pending:
         if due.issuperset(region.tiles):
-            job = _queue_alignment(db, region, condition, JobTrigger.auto.value, now)
+            job = _queue_alignment(db, region, condition, JobTrigger.auto.value, now, settings)
             if job is not None:
-                log.info("region %s queued for alignment, job %s", list(region.tiles), job.id)
+                log.info("region %s queued for %salignment, job %s", job.tiles, "joint re-" if job.realign else "",
+                         job.id)
                 jobs.append(job)
         due.difference_update(region.tiles)  # waits for its alignment
     for i, j in candidates:
@@ -191,20 +221,21 @@ def request_fusion(
         region = next((r for r in unaligned_regions(db) if (i, j) in r.tiles), None)
         db.rollback()
         if region is not None:
-            job = _queue_alignment(db, region, idle, trigger, now)
-            busy = [t for t in region.tiles if _active_job(db, *t) is not None]
+            job = _queue_alignment(db, region, idle, trigger, now, settings)
+            keys = alignment_scope(db, region, fusion_config(settings))[0] if job is None else []
         else:
             job = _queue_tile(db, i, j, idle, trigger, now)
-            busy = [(i, j)] if _active_job(db, i, j) is not None else []
+            keys = [(i, j)]
         if job is not None:
             enqueue(job.id, settings, job.kind)
             return job
+        busy = [t for t in keys if _active_job(db, *t) is not None]
         active = _active_job(db, *(busy[0] if busy else (i, j)))
         if active is not None:
             db.commit()
             return active
         # Busy tile without an active job (inconsistent row): release it and try again.
-        for key in region.tiles if region is not None else [(i, j)]:
+        for key in keys:
             tiles.unstick(db, *key, now)
         db.commit()
     raise RuntimeError(f"could not queue tile ({i}, {j}): it keeps changing state")

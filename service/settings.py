@@ -9,6 +9,8 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from fusion.config import FusionConfig
+
 MIB = 1024 * 1024
 
 
@@ -122,3 +124,8 @@ class Settings(BaseSettings):
 def get_settings() -> Settings:
     """The process-wide settings (read from the environment once)."""
     return Settings()
+
+
+def fusion_config(settings: Settings) -> FusionConfig:
+    """The configured preset (``FLEETMAP_FUSION_PRESET``: ``cpu``, ``paper`` or ``tiny``)."""
+    return FusionConfig.preset(settings.fusion_preset)

@@ -142,6 +142,16 @@ class FakeAlign(_FakeStage):
         return self._moved(inputs.tiles, inputs.submaps), {"losses": {"total": 0.1}}, trained
 
 
+def never_realign(monkeypatch: Any) -> None:
+    """Sessions added to a map are always aligned against it (``realign_share`` > 1): for tests of the
+    incremental path with fewer sessions than a joint re-alignment waits for."""
+    from fusion.config import FusionConfig
+    from service import schedule
+
+    monkeypatch.setattr(schedule, "fusion_config",
+                        lambda settings: FusionConfig.preset(settings.fusion_preset).with_(realign_share=2.0))
+
+
 def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, interval_s: float = 0.2) -> Any:
     """Poll ``predicate`` until truthy (returns its value) or fail after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s

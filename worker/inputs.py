@@ -16,21 +16,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import select, tuple_
 from sqlalchemy.orm import Session
 
 from fusion.config import FusionConfig
 from fusion.meshio import MeshLimits, read_submap_ply
 from fusion.tiles import border_pins
 from fusion.types import Pose, Sigma, SubmapInput, TileSpec, WarmKind, quat_to_matrix, rotation_angle_deg
-from service.settings import Settings
+from service.settings import Settings, fusion_config
 from service.store.blobs import BlobStore
 from service.store.models import Submap, SubmapTile, Tile, TileVersion
-
-
-def fusion_config(settings: Settings) -> FusionConfig:
-    """The configured preset (``FLEETMAP_FUSION_PRESET``: ``cpu``, ``paper`` or ``tiny``)."""
-    return FusionConfig.preset(settings.fusion_preset)
 
 
 @dataclass
@@ -68,6 +63,11 @@ class RegionInputs:
     @property
     def free(self) -> list[str]:
         return [s.id for s, _, free in self.rows if free]
+
+    @property
+    def held(self) -> int:
+        """How many submaps are held (the map the free ones are aligned against)."""
+        return sum(not free for _, _, free in self.rows)
 
 
 def _pose_init(submap: Submap) -> Pose:
@@ -175,16 +175,25 @@ def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
                       pending=len(submaps) - len(rows), warm_sha256=warm, warm_kind=kind)
 
 
-def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]]) -> RegionInputs:
+def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]], realign: bool = False) -> RegionInputs:
     """Every submap touching the region's tiles: the unaligned ones free (at their GPS poses), the
     aligned ones held at their refined poses; and the map's fields in those tiles, the new submaps are
     tracked against: each tile's last reconstruction field (``align_track_reconstruction``), else its
-    alignment field."""
+    alignment field. ``realign`` (a joint re-alignment): free too, from its refined pose, is every aligned
+    submap whose tiles all lie in ``keys`` (the others, reaching tiles outside, hold the region's border);
+    no field is frozen."""
     config = fusion_config(settings)
     submaps = _submaps_touching(db, keys)
-    rows = [(s, _pose_init(s), s.pose_refined is None) for s in submaps]
+    inside: set[str] = set()
+    if realign:
+        outside = set(db.execute(
+            select(SubmapTile.submap_id)
+            .where(SubmapTile.submap_id.in_([s.id for s in submaps]), tuple_(SubmapTile.i, SubmapTile.j).not_in(keys))
+        ).scalars())
+        inside = {s.id for s in submaps} - outside
+    rows = [(s, _pose_init(s), s.pose_refined is None or s.id in inside) for s in submaps]
     fields = {}
-    for i, j in keys:
+    for i, j in keys if not realign else []:
         tile = db.get(Tile, (i, j))
         if tile is None:
             continue

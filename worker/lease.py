@@ -42,6 +42,7 @@ class Claim:
     started_at: datetime
     lease_s: float
     queued_since: datetime | None = None  # the job's enqueued_at (else created_at) when it was claimed
+    realign: bool = False  # align: a joint re-alignment of the region (``FusionJob.realign``)
 
     @property
     def i(self) -> int:
@@ -81,7 +82,8 @@ def claim_job(db: Session, job_id: str, owner: str, settings: Settings) -> Claim
     job.state, job.progress, job.generation = JobState.running.value, 0.0, first.dirty_generation
     job.started_at = job.started_at or now
     job.attempts += 1
-    claim = Claim(job_id, job.kind, keys, owner, first.dirty_generation, now, settings.lease_s, queued_since)
+    claim = Claim(job_id, job.kind, keys, owner, first.dirty_generation, now, settings.lease_s, queued_since,
+                  bool(job.realign))
     db.commit()
     return claim
 

@@ -14,14 +14,24 @@ from enum import StrEnum
 from typing import Any
 
 import numpy as np
-from sqlalchemy import update
+from sqlalchemy import func, literal, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.meshio import write_fused_ply, write_glb
 from fusion.types import FusionResult, Pose
 from service.store import tiles
 from service.store.blobs import BlobStore
-from service.store.models import FusionJob, JobKind, JobState, JobTrigger, Submap, TileVersion, new_id, utcnow
+from service.store.models import (
+    FusionJob,
+    JobKind,
+    JobState,
+    JobTrigger,
+    Submap,
+    TileVersion,
+    UTCDateTime,
+    new_id,
+    utcnow,
+)
 from worker.inputs import TileInputs, pack_border
 from worker.lease import Claim
 
@@ -170,26 +180,32 @@ def commit_alignment(
     fields: dict[tuple[int, int], str],
     metrics: dict[str, Any],
     surface: dict[str, list[tuple[int, int]]] | None = None,
+    *,
+    incremental: bool = False,
 ) -> tuple[Outcome, list[str]]:
-    """ONE transaction: the refined pose of every aligned submap (written once: only where none was)
-    with the tiles its surface reaches there (``surface``, by submap id; ``Submap.surface_tiles``),
-    a reconstruct job for each of the region's tiles (each tile handed from this lease to its job,
-    ``queued``, with the blob of the field trained there, if any), the align job ``succeeded``. Returns
-    the outcome and the new jobs to enqueue."""
+    """ONE transaction: the refined pose of every aligned submap (written once: only where none was; a
+    joint re-alignment, ``claim.realign``, rewrites them) with the tiles its surface reaches there
+    (``surface``, by submap id; ``Submap.surface_tiles``) and whether it was aligned against a held map
+    (``incremental``), a reconstruct job for each of the region's tiles (each tile handed from this lease to
+    its job, ``queued``, with the blob of the field trained there, if any; after a re-alignment no tile
+    starts from its reconstruction field), the align job ``succeeded``. Returns the outcome and the new
+    jobs to enqueue."""
     now = utcnow()
     with factory() as db:
         for submap_id, pose in sorted(poses.items()):
             db.execute(
                 update(Submap)
-                .where(Submap.id == submap_id, Submap.pose_refined.is_(None))
-                .values(pose_refined=pose.to_json(), refined_at=now,
+                .where(Submap.id == submap_id, *(() if claim.realign else (Submap.pose_refined.is_(None),)))
+                .values(pose_refined=pose.to_json(), refined_at=func.coalesce(Submap.refined_at, literal(now, UTCDateTime())),
+                        aligned_incrementally=incremental,
                         surface_tiles=[list(t) for t in surface[submap_id]] if surface and submap_id in surface else None)
             )
         jobs = []
         for i, j in claim.tiles:
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
                             trigger=JobTrigger.auto.value, created_at=now, enqueued_at=now)
-            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j))):
+            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j)),
+                                   moved=claim.realign):
                 db.rollback()
                 log.warning("job %s: lease lost before commit; alignment discarded", claim.job_id)
                 return Outcome.lost, []

@@ -122,11 +122,11 @@ def _run_alignment(
     factory: sessionmaker[Session], blobs: BlobStore, settings: Settings, claim: Claim, keeper: LeaseKeeper
 ) -> Outcome:
     with factory() as db:
-        inputs = plan_alignment(db, settings, claim.tiles)
+        inputs = plan_alignment(db, settings, claim.tiles, claim.realign)
     poses: dict[str, Pose] = {}
     surface: dict[str, list[tuple[int, int]]] = {}
     fields: dict[tuple[int, int], str] = {}
-    metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free)}
+    metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free), "realign": claim.realign}
     if inputs.free:  # none: a re-run after the poses were committed; only the hand-over is left
         inputs.submaps = load_submaps(blobs, settings, inputs.rows)
         log.info("aligning region %s: %d submaps, %d free, %d tiles with a field, job %s", claim.tiles,
@@ -139,7 +139,8 @@ def _run_alignment(
         fields = {key: blobs.put(data) for key, data in trained.items()}  # durable before rows name them
     if keeper.lost.is_set():
         raise LeaseLost(f"lease of job {claim.job_id} lost")
-    outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics, surface)
+    outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics, surface,
+                                             incremental=inputs.held > 0 and not claim.realign)
     for job_id in jobs:
         enqueue(job_id, settings, JobKind.reconstruct.value)
     return outcome

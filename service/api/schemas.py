@@ -141,8 +141,10 @@ class SubmapPublic(BaseModel):
     odometry: Pose
     odometry_sigma: Sigma
     pose_gps: Pose = Field(description="GPS pose in the map frame")
-    pose_refined: Pose | None = Field(description="Map-frame pose refined by fusion; null until then")
-    refined_at: datetime | None
+    pose_refined: Pose | None = Field(
+        description="Map-frame pose refined by fusion; null until then. A joint re-alignment of its region "
+        "(a job with `realign` true) may rewrite it later")
+    refined_at: datetime | None = Field(description="When the submap was first aligned (its first `pose_refined`)")
     tiles: list[TileIndex]
     home_tile: TileIndex
     sha256: str = Field(description="sha256 of the mesh bytes")
@@ -215,6 +217,10 @@ class JobPublic(BaseModel):
     )
     tile: TileIndex = Field(description="The tile (reconstruct), or the region's first tile (align)")
     tiles: list[TileIndex] = Field(description="Every tile the job covers: `[tile]`, or the region (align)")
+    realign: bool = Field(
+        False, description="align only: true when the job re-aligns the region jointly (the poses of its aligned "
+        "submaps may move and are rewritten; every tile of it is reconstructed), because a large share of the "
+        "region's sessions had been added incrementally, against a map they could not move")
     state: JobStateName
     trigger: Literal["auto", "operator"]
     progress: float

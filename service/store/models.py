@@ -15,6 +15,7 @@ from typing import Any
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Boolean,
     DateTime,
     Float,
     ForeignKey,
@@ -25,6 +26,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    false,
 )
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -157,6 +159,10 @@ class Submap(Base):
     # the tiles its surface reaches at the refined pose, [[i, j], ...] (``fusion.tiles.surface_tiles`` with
     # ``refusion_band_m``; written with the pose): a tile is fused again for this submap only if it is here
     surface_tiles: Mapped[list[Any] | None] = mapped_column(default=None)
+    # the refined pose came from an incremental alignment (against a held map: it never moved that map),
+    # not from a joint one; counts towards its region's re-alignment (``FusionConfig.realign_share``). NULL:
+    # aligned before this was recorded (counts as joint)
+    aligned_incrementally: Mapped[bool | None] = mapped_column(Boolean, default=None)
     home_i: Mapped[int] = mapped_column(Integer)
     home_j: Mapped[int] = mapped_column(Integer)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
@@ -222,6 +228,9 @@ class FusionJob(Base):
     state: Mapped[str] = mapped_column(String(16), default=JobState.queued.value)
     kind: Mapped[str] = mapped_column(String(16), default=JobKind.reconstruct.value, server_default="reconstruct")
     tiles: Mapped[list[Any] | None] = mapped_column(default=None)
+    # align only: a joint re-alignment of the region (every submap whose tiles all lie in ``tiles`` free, from
+    # its refined pose; the poses rewritten) rather than the alignment of its new submaps against the map
+    realign: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     trigger: Mapped[str] = mapped_column(String(16), default=JobTrigger.auto.value)
     generation: Mapped[int] = mapped_column(Integer, default=0)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import random
 
+import pytest
+
 from fusion.regions import Region, region_of, regions
 
 
@@ -50,3 +52,27 @@ def test_chain_merges_through_union() -> None:
     chain = {f"s{k}": [(k, 0), (k + 1, 0)] for k in range(6)}
     (r,) = regions(chain)
     assert r.tiles == tuple((k, 0) for k in range(7)) and len(r.submaps) == 6
+
+
+def test_needs_realignment_once_a_share_of_the_sessions_came_incrementally() -> None:
+    """The joint re-alignment rule: a share of the region's sessions (the arriving one counted) aligned
+    against a held map; one session alone, or none incremental, never; the share validated."""
+    from fusion.config import FusionConfig
+    from fusion.regions import needs_realignment
+
+    third = FusionConfig().realign_share
+    assert not needs_realignment(5, 1, third)  # a fifth session added to four: incremental
+    assert needs_realignment(5, 2, third)  # the second one in a row: re-align
+    assert needs_realignment(2, 1, third)  # a second session: a small map is re-aligned
+    assert not needs_realignment(1, 1, third) and not needs_realignment(7, 0, third)
+    assert not needs_realignment(5, 5, 1.01)  # > 1: never
+    with pytest.raises(ValueError, match="realign_share"):
+        FusionConfig(realign_share=0.0)
+    # geometric: a map growing one session at a time from three joint sessions re-aligns at 5, 8, 12, 18
+    incremental, realigned = 0, []
+    for n in range(4, 20):
+        incremental += 1
+        if needs_realignment(n, incremental, third):
+            incremental = 0
+            realigned.append(n)
+    assert realigned == [5, 8, 12, 18]

@@ -14,7 +14,7 @@ from fusion.errors import FusionError
 from service import schedule
 from service.store import tiles
 from service.store.models import FusionJob, JobState, Tile, TileState, utcnow
-from tests.worker_support import FakeAlign, FakeFusion, in_process, upload
+from tests.worker_support import FakeAlign, FakeFusion, in_process, never_realign, upload
 from worker import runner
 from worker.results import Outcome
 from worker.runner import WorkerShutdown, run_fusion_job
@@ -116,6 +116,7 @@ def test_a_refusion_after_a_session_was_added_starts_from_the_tiles_last_reconst
 
     monkeypatch.setattr(inputs, "fusion_config",  # warm starts on, as in the cpu and paper presets
                         lambda settings: FusionConfig.preset(settings.fusion_preset).with_(recon_warm_fraction=1 / 3))
+    never_realign(monkeypatch)  # two sessions: the second would re-align the map jointly
     monkeypatch.setattr(runner, "_align", FakeAlign())
     monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
     assert _run(env) is Outcome.succeeded  # alignment
@@ -167,6 +168,7 @@ def test_a_tile_a_new_session_only_grazes_is_reused_not_fused_again(env: Any, mo
     change their fingerprint: a tile the new surface stays away from keeps its version."""
     from service.store.models import Submap, SubmapTile
 
+    never_realign(monkeypatch)
     monkeypatch.setattr(runner, "_align", FakeAlign())
     monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
     assert _run(env) is Outcome.succeeded
@@ -246,3 +248,85 @@ def test_the_runner_records_worker_metrics(env: Any, monkeypatch: pytest.MonkeyP
     assert _sample("fleetmap_worker_job_failures_total", kind="reconstruct", code="diverged") == (
         before["failed"] + 1
     )
+
+
+def _drain(env: Any) -> list[FusionJob]:
+    """Run every queued job (alignments hand their tiles to reconstruct jobs) until none is left; returns
+    the jobs run, in order."""
+    done: list[FusionJob] = []
+    for _ in range(20):
+        with env.db() as db:
+            queued = db.query(FusionJob).filter_by(state=JobState.queued.value).order_by(FusionJob.created_at).first()
+        if queued is None:
+            return done
+        assert run_fusion_job(queued.id, env.settings, session_factory=env.db, blob_store=env.app.state.blobs) in (
+            Outcome.succeeded, Outcome.reused)
+        with env.db() as db:
+            done.append(db.get(FusionJob, queued.id))
+    raise AssertionError("jobs keep coming")
+
+
+def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Sessions added to a fused map are aligned against it, held where it is; once a third of the sessions
+    with a submap in the new session's tiles came that way (``realign_share``), the alignment re-aligns
+    them jointly instead: every submap whose tiles all lie in the job's tiles free from its refined pose
+    (one reaching farther holds the border), every pose rewritten, every tile reconstructed from the new
+    alignment field (not from its reconstruction field of the old poses)."""
+    from service.store.models import Submap, SubmapTile
+    from worker.inputs import plan_tile
+
+    monkeypatch.setattr(runner, "_align", align := FakeAlign(shift=0.5))  # a free pose moves 0.5 m along x
+    monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
+    with in_process(tmp_path) as env:
+        ids = {}
+
+        def add(session: str, x: float) -> list[FusionJob]:
+            ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
+            with env.db() as db:
+                schedule.request_fusion(db, 0, 0, settings=env.settings)
+            return _drain(env)
+
+        def pose_x() -> dict[str, float]:
+            with env.db() as db:
+                return {k: db.get(Submap, v).pose_refined["t"][0] for k, v in ids.items()}
+
+        for session, x in [("a", 10.0), ("b", 12.0), ("c", 55.0)]:
+            ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
+        ids["f"] = upload(env, "f", 0, [120.0, 10.0, 0.0])["id"]  # reaches tiles (1, 0) and (2, 0)
+        with env.db() as db:
+            tiles_of = {k: sorted((t.i, t.j) for t in db.query(SubmapTile).filter_by(submap_id=v)) for k, v in ids.items()}
+        assert tiles_of == {"a": [(0, 0)], "b": [(0, 0)], "c": [(0, 0), (1, 0)], "f": [(1, 0), (2, 0)]}
+        first = add("base", 14.0)  # one joint alignment of five sessions over the three tiles
+        assert [(j.kind, j.realign) for j in first][0] == ("align", False)
+        assert pose_x() == {"a": 10.5, "b": 12.5, "c": 55.5, "f": 120.5, "base": 14.5}
+
+        second = add("d", 16.0)  # 1 of 6 sessions in tile (0, 0) incremental: tracked against the map
+        assert (second[0].kind, second[0].realign, second[0].tiles) == ("align", False, [[0, 0]])
+        assert set(align.frozen) == {(0, 0)}
+        assert pose_x() == {"a": 10.5, "b": 12.5, "c": 55.5, "f": 120.5, "base": 14.5, "d": 16.5}
+        with env.db() as db:
+            assert db.get(Submap, ids["d"]).aligned_incrementally is True
+            assert db.get(Submap, ids["a"]).aligned_incrementally is False
+            assert db.get(Tile, (0, 0)).recon_field_sha256 is not None
+            first_aligned = db.get(Submap, ids["a"]).refined_at
+
+        third = add("e", 18.0)  # 2 of 7: the region is re-aligned jointly, over every tile its submaps reach
+        job = third[0]
+        assert (job.kind, job.realign, job.tiles, job.metrics["realign"]) == ("align", True, [[0, 0], [1, 0]], True)
+        assert env.get(f"/v1/jobs/{job.id}").json()["realign"] is True
+        assert align.frozen == {}  # no field held: every tile trained again
+        free = {s.session_id for s in align.calls[-1][1] if s.free}
+        assert free == {"a", "b", "c", "base", "d", "e"}  # f reaches tile (2, 0), outside: it holds the border
+        assert pose_x() == {"a": 11.0, "b": 13.0, "c": 56.0, "f": 120.5, "base": 15.0, "d": 16.5 + 0.5, "e": 18.5}
+        with env.db() as db:
+            assert not any(db.get(Submap, v).aligned_incrementally for v in ids.values())
+            assert db.get(Submap, ids["a"]).refined_at == first_aligned  # when it was first aligned
+            assert db.get(Tile, (0, 0)).align_field_sha256 is not None
+        recon = {(j.tile_i, j.tile_j): j for j in third[1:]}
+        assert set(recon) == {(0, 0), (1, 0)} and all(j.kind == "reconstruct" for j in recon.values())
+        assert fusion.warm_kind == "alignment"  # the last one started from the new alignment's field
+
+        fourth = add("g", 20.0)  # the re-aligned map is joint again: the next session is tracked against it
+        assert fourth[0].realign is False and set(align.frozen) == {(0, 0)}
+        with env.db() as db:
+            assert plan_tile(db, env.settings, 0, 0).warm_kind == "reconstruction"

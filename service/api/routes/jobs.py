@@ -20,6 +20,7 @@ def job_public(job: FusionJob) -> JobPublic:
         kind=job.kind,  # type: ignore[arg-type]
         tile=[job.tile_i, job.tile_j],
         tiles=job.tiles or [[job.tile_i, job.tile_j]],
+        realign=bool(job.realign),
         state=job.state,  # type: ignore[arg-type]
         trigger=job.trigger,  # type: ignore[arg-type]
         progress=job.progress,

@@ -134,7 +134,8 @@ def test_add_session_aligns_only_the_new_session_and_refuses_only_its_tiles(tmp_
     simulate(tmp_path, seed=6, sessions=2, gps_noise=(0.5, 0.5), sensor="exact",
              world_params=WorldParams(core_max=(64.0, 32.0), margin=10.0, ground_res=0.5),
              fleet_params=FleetParams(submap_length=15.0, sensor_range=10.0, submap_res=0.8, drive_margin=2.0))
-    config = FusionConfig.preset("tiny").with_(coarse_register=False)
+    # two sessions: the second would re-align the map jointly (realign_share), not be tracked against it
+    config = FusionConfig.preset("tiny").with_(coarse_register=False, realign_share=2.0)
     ctx = prepare(tmp_path, config, tile_size=32.0, region=((0.0, 0.0), (64.0, 32.0)))
     keys = [(0, 0), (1, 0)]
     row = bench_region._add_session(ctx, keys)
@@ -157,7 +158,9 @@ def test_add_session_aligns_only_the_new_session_and_refuses_only_its_tiles(tmp_
 @pytest.mark.timeout(300)
 def test_add_sessions_adds_the_last_two_one_after_the_other(tmp_path) -> None:  # noqa: ANN001
     """The ``add_sessions`` row: the second-last session is added to a map of the others, then the last to
-    that map; each addition frees only its own submaps, the second holds the first's aligned poses."""
+    that map. With ``realign_share`` 1/2 the first (one of two sessions) re-aligns the map jointly: every
+    submap free, every tile reconstructed; the second (one of three) is tracked against it: only its own
+    submaps free, the others held at the re-aligned poses."""
     from fusion.eval.bench_context import prepare
     from fusion.eval.synth.fleet import FleetParams
     from fusion.eval.synth.simulate import simulate
@@ -166,16 +169,19 @@ def test_add_sessions_adds_the_last_two_one_after_the_other(tmp_path) -> None:  
     simulate(tmp_path, seed=6, sessions=3, gps_noise=(0.5, 0.5), sensor="exact",
              world_params=WorldParams(core_max=(64.0, 32.0), margin=10.0, ground_res=0.5),
              fleet_params=FleetParams(submap_length=15.0, sensor_range=10.0, submap_res=0.8, drive_margin=2.0))
-    config = FusionConfig.preset("tiny").with_(coarse_register=False)
+    config = FusionConfig.preset("tiny").with_(coarse_register=False, realign_share=0.5)
     ctx = prepare(tmp_path, config, tile_size=32.0, region=((0.0, 0.0), (64.0, 32.0)))
     row = bench_region._add_session(ctx, [(0, 0), (1, 0)], count=2)
     order = sorted({s.input.session_id for s in ctx.submaps})
     size = {sid: sum(s.input.session_id == sid for s in ctx.submaps) for sid in order}
     first, second = row["additions"]
     assert (first["session"], second["session"]) == (order[1], order[2]) and row["new_session"] == order[2]
-    assert first["alignment"]["num_free"] == size[order[1]] and first["alignment"]["num_submaps"] == size[order[0]] + size[order[1]]
+    both = size[order[0]] + size[order[1]]
+    assert first["realigned"] and not first["alignment"]["incremental"] and row["realigned"] == [order[1]]
+    assert first["alignment"]["num_free"] == first["alignment"]["num_submaps"] == both and first["tiles_refused"] == 2
+    assert not second["realigned"] and second["alignment"]["incremental"]
     assert second["alignment"]["num_free"] == size[order[2]] and second["alignment"]["num_submaps"] == len(ctx.submaps)
-    assert second["alignment"]["incremental"] and row["add_s"] == second["add_s"] > 0
+    assert row["add_s"] == second["add_s"] > 0
     assert row["geo_f"] > 0.2 and row["poses"] == len(ctx.submaps)
     with pytest.raises(ValueError, match="needs 4 sessions"):
         bench_region._add_session(ctx, [(0, 0), (1, 0)], count=3)
