@@ -14,19 +14,21 @@ from enum import StrEnum
 from typing import Any
 
 import numpy as np
-from sqlalchemy import func, literal, update
+from sqlalchemy import func, literal, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.meshio import write_fused_ply, write_glb
 from fusion.types import FusionResult, Pose
 from service.store import tiles
 from service.store.blobs import BlobStore
+from service.store.db import insert_ignore
 from service.store.models import (
     FusionJob,
     JobKind,
     JobState,
     JobTrigger,
     Submap,
+    SubmapTile,
     TileVersion,
     UTCDateTime,
     new_id,
@@ -173,6 +175,28 @@ def commit_reused(factory: sessionmaker[Session], claim: Claim, inputs: TileInpu
     return Outcome.reused
 
 
+def _join_surface_tiles(
+    db: Session, surface: dict[str, list[tuple[int, int]]], leased: set[tuple[int, int]], now: datetime
+) -> list[tuple[int, int]]:
+    """A submap whose aligned surface reaches a tile its GPS-padded box did not (a GPS error beyond its
+    sigma) joins that tile: a membership row, and the tile, where this job does not hold it, marked dirty
+    (created if new) so the scheduler fuses it with the submap. Returns those tiles."""
+    ids = sorted(surface)
+    have = set(db.execute(
+        select(SubmapTile.submap_id, SubmapTile.i, SubmapTile.j).where(SubmapTile.submap_id.in_(ids))
+    ).tuples())
+    new = [(sid, int(i), int(j)) for sid in ids for i, j in surface[sid] if (sid, int(i), int(j)) not in have]
+    if not new:
+        return []
+    insert_ignore(db, SubmapTile, [{"submap_id": sid, "i": i, "j": j} for sid, i, j in new])
+    reached = {(i, j) for _, i, j in new}
+    outside = sorted(reached - leased)
+    tiles.mark_dirty(db, outside, now, upload=True)
+    log.info("%d aligned submaps reach %d tiles their GPS did not; tiles %s marked dirty",
+             len({sid for sid, _, _ in new}), len(reached), outside)
+    return outside
+
+
 def commit_alignment(
     factory: sessionmaker[Session],
     claim: Claim,
@@ -200,6 +224,7 @@ def commit_alignment(
                         aligned_incrementally=incremental,
                         surface_tiles=[list(t) for t in surface[submap_id]] if surface and submap_id in surface else None)
             )
+        joined = _join_surface_tiles(db, surface or {}, set(claim.tiles), now)
         jobs = []
         for i, j in claim.tiles:
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
@@ -212,7 +237,7 @@ def commit_alignment(
             db.add(job)
             jobs.append(job.id)
         _job_succeeded(db, claim, now, None, jsonable({**metrics, "aligned_submaps": len(poses),
-                                                       "reconstruct_jobs": jobs}))
+                                                       "reconstruct_jobs": jobs, "joined_tiles": joined}))
         db.commit()
     log.info("region %s aligned: %d submap poses, %d tiles to reconstruct", claim.tiles, len(poses), len(jobs))
     return Outcome.succeeded, jobs

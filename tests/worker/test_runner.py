@@ -330,3 +330,31 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
         assert fourth[0].realign is False and set(align.frozen) == {(0, 0)}
         with env.db() as db:
             assert plan_tile(db, env.settings, 0, 0).warm_kind == "reconstruction"
+
+
+def test_a_submap_aligned_into_a_tile_its_gps_missed_joins_it(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A GPS error beyond the submap's sigma: its box marks only tile (0, 0), the alignment moves it 45 m east
+    into tile (1, 0). The submap joins that tile (membership, the tile created dirty), and the tile's
+    reconstruction fuses it; the tile it already was in is not marked again."""
+    from service.store.models import Submap
+
+    monkeypatch.setattr(runner, "_align", FakeAlign(shift=45.0))
+    monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
+    with in_process(tmp_path) as env:
+        sid = upload(env, "veh-1/a", 0, [10.0, 10.0, 0.0])["id"]
+        assert env.get(f"/v1/submaps/{sid}").json()["tiles"] == [[0, 0]]
+        with env.db() as db:
+            schedule.request_fusion(db, 0, 0, settings=env.settings)
+        jobs = _drain(env)
+        assert jobs[0].metrics["joined_tiles"] == [[1, 0]]
+        assert env.get(f"/v1/submaps/{sid}").json()["tiles"] == [[0, 0], [1, 0]]
+        assert env.get("/v1/tiles/0/0").json()["state"] == "fused"
+        assert env.get("/v1/tiles/1/0").json()["state"] == "dirty"
+        with env.db() as db:
+            assert db.get(Submap, sid).surface_tiles == [[0, 0], [1, 0]]
+            job = schedule.request_fusion(db, 1, 0, settings=env.settings)
+        assert job.kind == "reconstruct"  # the submap is aligned: the tile is only reconstructed
+        _drain(env)
+        tile, submaps = fusion.calls[-1]
+        assert (tile.i, tile.j) == (1, 0) and [s.id for s in submaps] == [sid]
+        assert env.get("/v1/tiles/1/0").json()["state"] == "fused"
