@@ -57,10 +57,13 @@ class GcReport:
     removed: list[str] = field(default_factory=list)
     removed_bytes: int = 0
     kept_bytes: int = 0
+    partial: int = 0  # dead writers' partial files removed (file store)
+    partial_bytes: int = 0
 
     def summary(self) -> str:
         verb = "would remove" if self.dry_run else "removed"
-        return (f"{verb} {len(self.removed)} unreferenced blobs ({self.removed_bytes / 1e6:.1f} MB); kept "
+        return (f"{verb} {len(self.removed)} unreferenced blobs ({self.removed_bytes / 1e6:.1f} MB) and "
+                f"{self.partial} partial writes ({self.partial_bytes / 1e6:.1f} MB); kept "
                 f"{self.referenced} referenced and {self.young} younger than the grace period "
                 f"({self.kept_bytes / 1e6:.1f} MB)")
 
@@ -86,5 +89,6 @@ def collect(blobs: BlobStore, keep: set[str], *, min_age: timedelta = DEFAULT_MI
             report.removed_bytes += blob.size
             continue
         report.kept_bytes += blob.size
+    report.partial, report.partial_bytes = blobs.sweep_partial_writes(cutoff, dry_run)
     log.info("blob garbage collection: %s", report.summary())
     return report

@@ -107,3 +107,24 @@ def test_gc_removes_superseded_fields_and_unfinished_writes_only(
         assert "min-age-hours" in capsys.readouterr().err
     finally:
         get_settings.cache_clear()
+
+
+def test_gc_removes_dead_writers_partial_files_once_old(tmp_path: Path) -> None:
+    """A writer killed between creating its ``.tmp-*`` file and renaming it leaves the file behind: the
+    collection removes it once older than the grace period (a young one may be a write in progress), and
+    never lists it as a blob."""
+    store = FileBlobStore(tmp_path / "blobs")
+    sha = store.put(b"a blob")
+    folder = store.path(sha).parent  # type: ignore[union-attr]
+    dead, live = folder / ".tmp-dead", folder / ".tmp-live"
+    dead.write_bytes(b"x" * 1000)
+    live.write_bytes(b"y" * 10)
+    then = time.time() - TWO_DAYS_S
+    os.utime(dead, (then, then))
+    assert [b.sha256 for b in store.list_blobs()] == [sha]
+    dry = collect(store, {sha}, dry_run=True)
+    assert (dry.partial, dry.partial_bytes) == (1, 1000) and dead.exists()
+    report = collect(store, {sha})
+    assert (report.partial, report.partial_bytes, report.removed) == (1, 1000, [])
+    assert not dead.exists() and live.exists() and store.exists(sha)
+    assert "1 partial writes" in report.summary()

@@ -70,6 +70,11 @@ class BlobStore(Protocol):
         (``service.store.gc``)."""
         ...
 
+    def sweep_partial_writes(self, older_than: datetime, dry_run: bool = False) -> tuple[int, int]:
+        """Remove what writers that died mid-write left (not blobs: never readable), last touched before
+        ``older_than``; returns (count, bytes) removed (``dry_run``: that would be). Garbage collection only."""
+        ...
+
     def ping(self) -> None:
         """Raise if the store is unreachable or not writable."""
         ...

@@ -104,6 +104,22 @@ class FileBlobStore:
     def delete(self, sha256: str) -> None:
         self._path(sha256).unlink(missing_ok=True)
 
+    def sweep_partial_writes(self, older_than: datetime, dry_run: bool = False) -> tuple[int, int]:
+        """The ``.tmp-*`` files of writers killed between creating and renaming them."""
+        count = size = 0
+        base = self.root / "sha256"
+        for path in base.glob("*/*/.tmp-*") if base.is_dir() else []:
+            try:
+                stat = path.stat()
+                if datetime.fromtimestamp(stat.st_mtime, UTC) >= older_than:
+                    continue
+                if not dry_run:
+                    path.unlink()
+            except FileNotFoundError:  # renamed or removed meanwhile
+                continue
+            count, size = count + 1, size + stat.st_size
+        return count, size
+
     def ping(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
         if not os.access(self.root, os.W_OK):

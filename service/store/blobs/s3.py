@@ -18,6 +18,7 @@ import logging
 import os
 import threading
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 from urllib.parse import urlparse
@@ -221,6 +222,11 @@ class S3BlobStore:
             self.client.delete_object(Bucket=self.bucket, Key=self.key(sha256))
         except (ClientError, BotoCoreError) as exc:
             raise BlobStoreError(f"s3 delete of blob {sha256} failed: {exc}") from exc
+
+    def sweep_partial_writes(self, older_than: datetime, dry_run: bool = False) -> tuple[int, int]:
+        """Nothing: an object appears whole or not at all (incomplete multipart uploads are the bucket's
+        lifecycle rule's to abort, ``AbortIncompleteMultipartUpload``)."""
+        return 0, 0
 
     def ping(self) -> None:
         """Raise ``BlobStoreError`` unless the bucket is reachable with the configured credentials."""
