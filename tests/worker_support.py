@@ -137,7 +137,7 @@ class FakeAlign(_FakeStage):
     """Stands in for the region alignment (``worker.runner._align``)."""
 
     def __call__(self, inputs: Any, keeper: Any, frozen: dict[Any, bytes]) -> tuple[dict[str, Pose], dict[str, Any], dict]:
-        self.frozen = frozen
+        self.frozen, self.config = frozen, inputs.config
         trained = {(t.i, t.j): f"field of {t.i},{t.j}".encode() for t in inputs.tiles if (t.i, t.j) not in frozen}
         return self._moved(inputs.tiles, inputs.submaps), {"losses": {"total": 0.1}}, trained
 

@@ -200,7 +200,8 @@ def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]],
         blob = (config.align_track_reconstruction and tile.recon_field_sha256) or tile.align_field_sha256
         if blob:
             fields[(i, j)] = blob
-    return RegionInputs([TileSpec(i, j, settings.tile_size) for i, j in keys], config, rows, fields)
+    return RegionInputs([TileSpec(i, j, settings.tile_size) for i, j in keys],
+                        config.for_realignment() if realign else config, rows, fields)
 
 
 def load_submaps(

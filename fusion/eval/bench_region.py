@@ -272,7 +272,7 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     cfg = ctx.config
     specs = [TileSpec(i, j, ctx.tile_size) for i, j in keys]
     result = align_region([replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=True) for s in submaps],
-                          specs, cfg)
+                          specs, cfg.for_realignment())
     poses |= result.poses
     fused = reconstruct_tiles(submaps, keys, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields)
     return fused, dict(result.fields), {

@@ -68,6 +68,10 @@ def test_needs_realignment_once_a_share_of_the_sessions_came_incrementally() -> 
     assert not needs_realignment(5, 5, 1.01)  # > 1: never
     with pytest.raises(ValueError, match="realign_share"):
         FusionConfig(realign_share=0.0)
+    half = FusionConfig(align_iterations_per_tile=300, realign_iterations_fraction=0.5)
+    assert half.for_realignment().align_iterations_per_tile == 150 and half.align_iterations_per_tile == 300
+    with pytest.raises(ValueError, match="realign_iterations_fraction"):
+        FusionConfig(realign_iterations_fraction=1.5)
     # geometric: a map growing one session at a time from three joint sessions re-aligns at 5, 8, 12, 18
     incremental, realigned = 0, []
     for n in range(4, 20):

@@ -272,9 +272,13 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
     them jointly instead: every submap whose tiles all lie in the job's tiles free from its refined pose
     (one reaching farther holds the border), every pose rewritten, every tile reconstructed from the new
     alignment field (not from its reconstruction field of the old poses)."""
+    from fusion.config import FusionConfig
     from service.store.models import Submap, SubmapTile
+    from worker import inputs
     from worker.inputs import plan_tile
 
+    tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=0.5)
+    monkeypatch.setattr(inputs, "fusion_config", lambda settings: tiny)
     monkeypatch.setattr(runner, "_align", align := FakeAlign(shift=0.5))  # a free pose moves 0.5 m along x
     monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
     with in_process(tmp_path) as env:
@@ -302,7 +306,7 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
 
         second = add("d", 16.0)  # 1 of 6 sessions in tile (0, 0) incremental: tracked against the map
         assert (second[0].kind, second[0].realign, second[0].tiles) == ("align", False, [[0, 0]])
-        assert set(align.frozen) == {(0, 0)}
+        assert set(align.frozen) == {(0, 0)} and align.config == tiny
         assert pose_x() == {"a": 10.5, "b": 12.5, "c": 55.5, "f": 120.5, "base": 14.5, "d": 16.5}
         with env.db() as db:
             assert db.get(Submap, ids["d"]).aligned_incrementally is True
@@ -314,7 +318,8 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
         job = third[0]
         assert (job.kind, job.realign, job.tiles, job.metrics["realign"]) == ("align", True, [[0, 0], [1, 0]], True)
         assert env.get(f"/v1/jobs/{job.id}").json()["realign"] is True
-        assert align.frozen == {}  # no field held: every tile trained again
+        assert align.frozen == {}  # no field held: every tile trained again, from the refined poses: half the steps
+        assert align.config.align_iterations_per_tile == round(tiny.align_iterations_per_tile / 2)
         free = {s.session_id for s in align.calls[-1][1] if s.free}
         assert free == {"a", "b", "c", "base", "d", "e"}  # f reaches tile (2, 0), outside: it holds the border
         assert pose_x() == {"a": 11.0, "b": 13.0, "c": 56.0, "f": 120.5, "base": 15.0, "d": 16.5 + 0.5, "e": 18.5}
