@@ -218,8 +218,13 @@ class FusionConfig:
     # jointly aligned part grows by 1 / (1 - share) each time): a third re-aligns a five-session map at its
     # second added session, not at its first. > 1: never (``fusion.regions.needs_realignment``)
     realign_share: float = 1 / 3
-    # a joint re-alignment starts from refined poses: this fraction of ``align_iterations_per_tile``
-    realign_iterations_fraction: float = 1.0
+    # a joint re-alignment starts from refined poses: this fraction of ``align_iterations_per_tile`` (the
+    # registration stages and the polish do the same work either way). add_sessions, map after the
+    # re-alignment, all steps -> half (geo F / sem F / pose m, re-alignment s): exact 1 0.982 / 0.773 / 0.091,
+    # 214 s -> 0.980 / 0.787 / 0.091, 161 s; camera 1 0.902 / 0.412 / 0.286, 195 s -> 0.901 / 0.390 / 0.282,
+    # 128 s; exact 0 0.983 / 0.803 / 0.124, 204 s -> 0.981 / 0.808 / 0.124, 135 s (the joint fusions 0.98 / 0.76-0.80 /
+    # 0.09-0.12; README, "A map grown session by session")
+    realign_iterations_fraction: float = 0.5
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). New session's
     # pose RMSE, 2x2 bench, 3 sessions, camera seeds 0/1: 60/tile 0.280/0.334 m, 240/tile 0.171/0.243 m (+9 s)
     align_incremental_iterations_per_tile: int = 240
