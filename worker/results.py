@@ -182,9 +182,8 @@ def _join_surface_tiles(
     sigma) joins that tile: a membership row, and the tile, where this job does not hold it, marked dirty
     (created if new) so the scheduler fuses it with the submap. Returns those tiles."""
     ids = sorted(surface)
-    have = set(db.execute(
-        select(SubmapTile.submap_id, SubmapTile.i, SubmapTile.j).where(SubmapTile.submap_id.in_(ids))
-    ).tuples())
+    have = {(sid, int(i), int(j)) for sid, i, j in db.execute(
+        select(SubmapTile.submap_id, SubmapTile.i, SubmapTile.j).where(SubmapTile.submap_id.in_(ids)))}
     new = [(sid, int(i), int(j)) for sid in ids for i, j in surface[sid] if (sid, int(i), int(j)) not in have]
     if not new:
         return []

@@ -155,15 +155,11 @@ def session_tracks(db: Session, *, session_ids: list[str], max_points: int) -> l
     each subsampled to ``max_points``."""
     if not session_ids:
         return []
-    agents = dict(
-        db.execute(
-            select(DrivingSession.session_id, DrivingSession.agent_id).where(
-                DrivingSession.session_id.in_(session_ids)
-            )
+    agents: dict[str, str] = {
+        sid: agent for sid, agent in db.execute(
+            select(DrivingSession.session_id, DrivingSession.agent_id).where(DrivingSession.session_id.in_(session_ids))
         )
-        .tuples()
-        .all()
-    )
+    }
     points: dict[str, list[TrackPoint]] = {sid: [] for sid in session_ids}
     rows = db.execute(
         select(Submap.session_id, Submap.seq, Submap.pose_gps, Submap.pose_refined)
