@@ -125,7 +125,8 @@ class FusionConfig:
     # non-ground samples spread over the horizontal directions their normals face (normal-space sampling,
     # fusion.register.surface_samples; 0: by area): facades along a street leave the direction of travel open
     fine_normal_balance: float = 1.0
-    # match samples to the own session's other submaps too (off: other sessions only). Off, each session's chain
+    # match samples to the own session's other submaps too, pooled with the other sessions' (superseded by
+    # fine_own_overlap below, which weighs them by how well they fit; kept for the README's runs). Off, each session's chain
     # between the places other sessions pin it was shaped by odometry alone; on, its consecutive submaps'
     # overlaps hold it. Start poses, 3x3 exact bench seed 0, with fine_noise_max_gain 20: 0.104 -> 0.071 m; but
     # fused camera seed 0 geo F 0.801 -> 0.746 (monocular submaps of one session share their biases): off
@@ -133,6 +134,14 @@ class FusionConfig:
     # with fine_same_session: ground-like samples (normal within ~45° of up) match the own session too (off:
     # only walls, poles and other upright surfaces do)
     fine_same_session_ground: bool = True
+    # a session's consecutive submaps match each other too, as data of their own beside the other sessions'
+    # matches: weighted by the gain their residuals earn at the finest radius over fine_noise_max_gain (so
+    # exact overlaps, cm apart after a rigid fit, count nearly fully, and a monocular session's, whose scale
+    # and bend leave dm a rigid fit cannot remove, ~1/20: matching them stiffly hands the distortion on to
+    # the chain, fine_same_session above). Start poses, 3x3 bench, GPS 1.5 m, seeds 0/1/2 (m / °): exact
+    # 0.117/0.150, 0.082/0.139, 0.098/0.127 -> 0.093/0.108, 0.045/0.061, 0.061/0.065; camera 0.519, 0.287,
+    # 0.345 -> 0.516, 0.294, 0.340 m
+    fine_own_overlap: bool = False
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
@@ -339,8 +348,14 @@ class FusionConfig:
             raise ValueError(f"thin_inflate_m must be >= 0 (0: off), got {self.thin_inflate_m}")
         if not self.realign_share > 0:
             raise ValueError(f"realign_share must be > 0 (> 1: never), got {self.realign_share}")
-        if not 0 < self.realign_iterations_fraction <= 1:
-            raise ValueError(f"realign_iterations_fraction must be in (0, 1], got {self.realign_iterations_fraction}")
+        if self.fine_same_session and self.fine_own_overlap:
+            raise ValueError("fine_same_session and fine_own_overlap both match a session's own submaps: "
+                             "choose one")
+        if not 0 <= self.realign_iterations_fraction <= 1:
+            raise ValueError(f"realign_iterations_fraction must be in [0, 1], got {self.realign_iterations_fraction}")
+        if self.align_iterations_per_tile < 0:
+            raise ValueError(f"align_iterations_per_tile must be >= 0 (0: registration only), "
+                             f"got {self.align_iterations_per_tile}")
         if not self.refusion_band_m >= 0:
             raise ValueError(f"refusion_band_m must be >= 0, got {self.refusion_band_m}")
         for option in ("consensus_movable", "thin_classes"):
@@ -421,7 +436,7 @@ class FusionConfig:
             key, sep, text = item.partition("=")
             key = key.strip()
             if not sep or key not in types:
-                raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY a FusionConfig field")
+                raise ValueError(f"{item!r}: expected KEY=VALUE with KEY a FusionConfig field")
             kind = str(types[key])
             try:
                 if kind == "bool":
@@ -435,7 +450,7 @@ class FusionConfig:
                 else:  # tuple[float, ...]
                     changes[key] = tuple(float(v) for v in text.split(",") if v.strip())
             except ValueError:
-                raise ValueError(f"--set {item!r}: {text!r} is not a valid {kind}") from None
+                raise ValueError(f"{item!r}: {text!r} is not a valid {kind}") from None
         return replace(self, **changes)
 
     def with_(self, **changes: Any) -> FusionConfig:
@@ -444,7 +459,8 @@ class FusionConfig:
     def for_realignment(self) -> FusionConfig:
         """The config of a joint re-alignment (``realign_share``): ``realign_iterations_fraction`` of the
         alignment steps, the poses starting where earlier alignments left them."""
-        steps = max(1, round(self.align_iterations_per_tile * self.realign_iterations_fraction))
+        fraction = self.realign_iterations_fraction
+        steps = max(1, round(self.align_iterations_per_tile * fraction)) if fraction > 0 else 0
         return self.with_(align_iterations_per_tile=steps)
 
     def to_dict(self) -> dict[str, Any]:

@@ -186,12 +186,15 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             posed = transform(now, own_t, pts_t).cpu().numpy()
             posed_n = (now[own_t][:, :3, :3] @ nrm_t[:, :, None])[:, :, 0].cpu().numpy()
         src, dst = _correspondences(posed, posed_n, own, float(radius), config.fine_normal_dot, group, within)
+        n_other = len(src)
+        if config.fine_own_overlap:  # the own session's other submaps, as data of their own (weights below)
+            s_own, d_own = _correspondences(posed, posed_n, own, float(radius), config.fine_normal_dot, of, same=True)
+            src, dst = np.concatenate([src, s_own]), np.concatenate([dst, d_own])
         if len(src) == 0:
             rounds.append({"radius_m": float(radius), "matches": 0})
             continue
         mean_n = posed_n[src] + posed_n[dst]
         mean_n /= np.linalg.norm(mean_n, axis=1, keepdims=True)
-        counts = np.bincount(own[src], minlength=n_subs)
         s_idx, d_idx = torch.tensor(src, device=dev), torch.tensor(dst, device=dev)
         n_pair = torch.tensor(mean_n, device=dev)
         sigma = radius / 2
@@ -202,10 +205,23 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
         r0 = ((posed[src] - posed[dst]) * mean_n).sum(-1)
         ground = np.abs(mean_n[:, 2]) >= UPRIGHT_NZ
         basin = radius > config.fine_max_dist_m
-        gains = np.where(ground, _noise_gain(r0[ground], sigma, config, config.fine_noise_ground and not basin),
-                         _noise_gain(r0[~ground], sigma, config, not basin))
-        gain = float(gains.mean())
-        w = torch.tensor(config.fine_weight * gains / counts[own[src]], device=dev)
+        w_np = np.zeros(len(src))
+        gain = 1.0
+        for is_own in (False, True):
+            part = (np.arange(len(src)) >= n_other) == is_own
+            if not part.any():
+                continue
+            g, u = ground & part, ~ground & part
+            gains = np.where(g, _noise_gain(r0[g], sigma, config, config.fine_noise_ground and not basin),
+                             _noise_gain(r0[u], sigma, config, not basin))[part]
+            if is_own:  # own-session overlaps count as far as they fit rigidly at the finest radius
+                trust = _noise_gain(r0[part], config.fine_min_dist_m / 2, config, not basin)
+                gains = gains * (trust / config.fine_noise_max_gain if not basin and config.fine_noise_max_gain > 1 else 0.0)
+            else:
+                gain = float(gains.mean())
+            counts = np.bincount(own[src[part]], minlength=n_subs)
+            w_np[part] = config.fine_weight * gains / counts[own[src[part]]]
+        w = torch.tensor(w_np, device=dev)
 
         def residual(t: torch.Tensor, s_idx: torch.Tensor = s_idx, d_idx: torch.Tensor = d_idx,
                      n_pair: torch.Tensor = n_pair) -> torch.Tensor:
@@ -460,7 +476,8 @@ def _gauss_newton(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: t
 
 
 def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, radius: float, min_dot: float,
-                     group: np.ndarray | None = None, within: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     group: np.ndarray | None = None, within: np.ndarray | None = None, same: bool = False
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """(source, target) sample indices: each sample's nearest sample of another submap within ``radius``
     whose normal agrees with its own (dot ≥ ``min_dot``; none: unmatched), never of a submap in the same
     ``group`` (per submap index; default: each its own, i.e. only the own submap) unless the sample is one of
@@ -483,7 +500,9 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
             if j == i or np.any(lo[j] > hi[i]) or np.any(hi[j] < lo[i]):
                 continue
             query = np.ones(len(mine), bool)
-            if group is not None and group[j] == group[i]:
+            if same and group is not None and group[j] != group[i]:
+                continue
+            if not same and group is not None and group[j] == group[i]:
                 if within is None:
                     continue
                 query = within[mine]

@@ -300,3 +300,35 @@ def test_the_solver_scaling_benchmark_aligns_its_synthetic_region() -> None:
     assert row["submaps"] == 30 and row["steps"] >= 1
     assert row["final_rms_m"] < 0.1 * row["start_rms_m"]
     assert lines and "s/step" in lines[0]
+
+
+def _lone_session(mesh_b: SemanticMesh) -> list[SubmapInput]:
+    """One session of two submaps over the same block; the second starts (and its odometry and GPS say it
+    is) 0.39 m / 0.6° off, loose odometry (0.3 m / 1°): no other session to register onto."""
+    wrong = Pose(np.array([0.3, -0.25, 0.05]), rot_z(0.6))
+    odometry = Sigma(0.3, 1.0)
+    return [SubmapInput("a0", "sa", 0, _block(), Pose.identity(), Pose.identity(), Sigma(2.0, 2.0), odometry,
+                        pose_gps=Pose.identity()),
+            SubmapInput("a1", "sa", 1, mesh_b, wrong, wrong, Sigma(2.0, 2.0), odometry, pose_gps=wrong)]
+
+
+def _distorted(mesh: SemanticMesh) -> SemanticMesh:
+    """A monocular submap's errors: 3 % scale about its centroid and a bend sideways and up (κ x²)."""
+    d = mesh.vertices - mesh.vertices.mean(0)
+    v = mesh.vertices.mean(0) + 1.03 * d
+    v[:, 1:] += 0.002 * d[:, :1] ** 2
+    return SemanticMesh(v, mesh.faces, mesh.face_labels)
+
+
+def test_a_sessions_own_overlaps_hold_its_chain_as_far_as_they_fit_rigidly() -> None:
+    """``fine_own_overlap``: consecutive submaps of one session match each other too, weighted by how well
+    they fit rigidly at the finest radius. Exact surfaces pull the second onto the first (0.39 m → mm);
+    distorted ones (scale and bend, as a monocular session's) barely move it, since matching them stiffly
+    would hand their distortion on to the chain. Off, a session's own overlaps are not matched at all."""
+    exact = _lone_session(_block(extra_box=True))
+    assert _relative(_run(exact).poses)[0] > 0.38  # off: only other sessions are matched; there are none
+    t, deg = _relative(_run(exact, fine_own_overlap=True).poses)
+    assert t < 0.02 and deg < 0.05, (t, deg)
+    res = _run(_lone_session(_distorted(_block(extra_box=True))), fine_own_overlap=True)
+    assert res.metrics["rounds"][-1]["matches"] > 100
+    assert _relative(res.poses)[0] > 0.3  # matched, but trusted ~1/20 of an exact overlap
