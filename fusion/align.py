@@ -120,6 +120,12 @@ def align_region(
     size = tiles[0].size_m
     origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
     poses, gps, coarse = _region_poses(subs, origin, config, dev)
+    if config.align_iterations_per_tile == 0 and not frozen:  # registration only: no field is trained
+        return AlignResult(map_poses(poses, origin, subs), {}, {
+            "losses": {}, "iterations": 0, "incremental": False, "registration_only": True,
+            "duration_s": time.perf_counter() - t_start, "duration_train_s": 0.0, "device": str(dev),
+            "num_submaps": len(subs), "num_free": int(sum(s.free for s in subs)), "num_tiles": len(tiles),
+            "frozen_tiles": [], "skipped": {}, "coarse": coarse})
     built, skipped = _build_tiles(subs, tiles, config, dev, poses, origin, frozen)
     incremental = any(t.frozen for t in built)
     per_tile = config.align_incremental_iterations_per_tile if incremental else config.align_iterations_per_tile

@@ -151,8 +151,8 @@ def shapes_tile(submap: Submap, i: int, j: int) -> bool:
 def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
     """The aligned submaps of tile (i, j), every one held at its refined pose (the alignment owns the
     poses); those still waiting for an alignment are counted in ``pending`` and left out. The warm start:
-    the tile's last reconstruction field (its held submaps have not moved since: alignments after it only
-    added submaps) with ``refusion_warm_fraction`` of the steps, else its last alignment field (none when
+    the tile's last reconstruction field (its held submaps have not moved since, or moved by cm to dm: an
+    incremental alignment only adds submaps, a re-alignment by registration only trains no field) with ``refusion_warm_fraction`` of the steps, else its last alignment field (none when
     the fraction is 0). The fingerprint names the alignment field (where warm starts are on), never the
     reconstruction's (every version changes it), and only the submaps whose surface reaches the tile
     (:func:`shapes_tile`): a tile whose submaps and poses are unchanged, or that a new submap only grazes,

@@ -210,8 +210,8 @@ def commit_alignment(
     joint re-alignment, ``claim.realign``, rewrites them) with the tiles its surface reaches there
     (``surface``, by submap id; ``Submap.surface_tiles``) and whether it was aligned against a held map
     (``incremental``), a reconstruct job for each of the region's tiles (each tile handed from this lease to
-    its job, ``queued``, with the blob of the field trained there, if any; after a re-alignment no tile
-    starts from its reconstruction field), the align job ``succeeded``. Returns the outcome and the new
+    its job, ``queued``, with the blob of the field trained there, if any, which replaces the tile's
+    reconstruction field as its warm start), the align job ``succeeded``. Returns the outcome and the new
     jobs to enqueue."""
     now = utcnow()
     with factory() as db:
@@ -228,8 +228,7 @@ def commit_alignment(
         for i, j in claim.tiles:
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
                             trigger=JobTrigger.auto.value, created_at=now, enqueued_at=now)
-            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j)),
-                                   moved=claim.realign):
+            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j))):
                 db.rollback()
                 log.warning("job %s: lease lost before commit; alignment discarded", claim.job_id)
                 return Outcome.lost, []

@@ -227,7 +227,8 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]], count: int = 1)
         sessions = {s.input.session_id for s in present} | {sid}
         if needs_realignment(len(sessions), len(incremental | {sid}), cfg.realign_share):
             present, incremental = present + new, set()
-            fused, aligned_fields, figures = _realign(ctx, keys, present, poses, skipped)
+            fused, trained, figures = _realign(ctx, keys, present, poses, fused, skipped)
+            aligned_fields |= trained
             additions.append({"session": sid, "submaps": len(new), "add_s": time.perf_counter() - t0} | figures)
             continue
         incremental.add(sid)
@@ -261,12 +262,13 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]], count: int = 1)
 
 
 def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[LoadedSubmap], poses: dict[str, Pose],
-             skipped: dict[str, str]) -> tuple[dict[tuple[int, int], FusionResult], dict[tuple[int, int], Any],
-                                               dict[str, Any]]:
+             before: dict[tuple[int, int], FusionResult], skipped: dict[str, str]
+             ) -> tuple[dict[tuple[int, int], FusionResult], dict[tuple[int, int], Any], dict[str, Any]]:
     """An addition that re-aligns the region jointly (``FusionConfig.realign_share``, as the service does):
     every submap free from its refined pose (the arriving ones from GPS), the GPS prior as ever, no frozen
-    field; every tile reconstructed from the new alignment's field. Updates ``poses``; returns the tiles'
-    results, the alignment's fields and the addition's figures."""
+    field; every tile reconstructed from the field the alignment trained there, or where it trained none
+    (``realign_iterations_fraction`` 0: registration only) from its own last reconstruction (``before``).
+    Updates ``poses``; returns the tiles' results, the alignment's fields and the addition's figures."""
     from fusion.align import align_region
 
     cfg = ctx.config
@@ -274,7 +276,8 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     result = align_region([replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=True) for s in submaps],
                           specs, cfg.for_realignment())
     poses |= result.poses
-    fused = reconstruct_tiles(submaps, keys, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields)
+    fused = reconstruct_tiles(submaps, keys, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields,
+                              previous=None if result.fields else before)
     return fused, dict(result.fields), {
         "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused),
         "refused": [list(k) for k in sorted(fused)], "alignment": result.metrics} | _recon_times(fused)

@@ -147,20 +147,18 @@ def release_lease(
 
 def hand_over(
     db: Session, i: int, j: int, *, owner: str, job_id: str, now: datetime, field_sha256: str | None = None,
-    moved: bool = False,
 ) -> bool:
     """An alignment finished: the tile goes from ``owner``'s lease to its reconstruct job ``job_id``
-    (→ ``queued``), recording the field the alignment trained there if any (a reconstruction field of
-    the tile's earlier poses no longer is a warm start; nor is it when held poses ``moved``: a
-    re-alignment); False if the lease is no longer ours."""
+    (→ ``queued``), recording the field the alignment trained there if any (then the reconstruction field
+    of the tile's earlier poses no longer is the warm start; where none was trained, e.g. a re-alignment
+    by registration only, it stays the start: the poses moved by cm to dm); False if the lease is no
+    longer ours."""
     values: dict[str, Any] = {
         "state": TileState.queued.value, "job_id": job_id, "lease_owner": None, "lease_until": None,
         "progress": 0.0, "updated_at": now,
     }
     if field_sha256 is not None:
         values.update(align_field_sha256=field_sha256, recon_field_sha256=None)
-    elif moved:
-        values.update(recon_field_sha256=None)
     return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 

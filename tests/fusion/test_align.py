@@ -74,6 +74,27 @@ def test_incremental_alignment_moves_only_the_new_submaps() -> None:
     assert err_after < 0.5 * err_before, (err_before, err_after)
 
 
+def test_an_alignment_without_field_steps_is_the_registration_alone() -> None:
+    """``align_iterations_per_tile`` 0 (a re-alignment with ``realign_iterations_fraction`` 0): the poses
+    are where the registrations put them (``start_poses``), no field is trained or returned; a held map
+    (frozen fields) still tracks, with its own steps."""
+    from fusion.align import start_poses
+    from fusion.config import FusionConfig
+
+    subs = _scene()
+    cfg = _config(align_iterations_per_tile=0)
+    res = align_region(subs, TILES, cfg)
+    assert res.fields == {} and res.metrics["iterations"] == 0 and res.metrics["registration_only"]
+    start, _ = start_poses(subs, cfg)
+    for sid, pose in res.poses.items():
+        assert np.allclose(pose.t, start[sid].t, atol=1e-6) and np.allclose(np.abs(pose.q), np.abs(start[sid].q), atol=1e-6)
+    before, after = _relative({s.id: s.pose_init for s in subs}), _relative(res.poses)
+    assert after[0] < 0.5 * before[0], (before, after)
+    assert FusionConfig(realign_iterations_fraction=0.0).for_realignment().align_iterations_per_tile == 0
+    with pytest.raises(ValueError, match="align_iterations_per_tile"):
+        FusionConfig(align_iterations_per_tile=-1)
+
+
 def test_align_levels_capped() -> None:
     cfg = tiny_config(align_max_levels=5)
     assert align_levels(0, 100, cfg) == cfg.lod_start_levels

@@ -266,18 +266,21 @@ def _drain(env: Any) -> list[FusionJob]:
     raise AssertionError("jobs keep coming")
 
 
-def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("fraction", [0.5, 0.0])
+def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkeypatch: pytest.MonkeyPatch,
+                                                           fraction: float) -> None:
     """Sessions added to a fused map are aligned against it, held where it is; once a third of the sessions
     with a submap in the new session's tiles came that way (``realign_share``), the alignment re-aligns
     them jointly instead: every submap whose tiles all lie in the job's tiles free from its refined pose
     (one reaching farther holds the border), every pose rewritten, every tile reconstructed from the new
-    alignment field (not from its reconstruction field of the old poses)."""
+    alignment field, or, by registration only (``realign_iterations_fraction`` 0: no field trained), from
+    its own last reconstruction."""
     from fusion.config import FusionConfig
     from service.store.models import Submap, SubmapTile
     from worker import inputs
     from worker.inputs import plan_tile
 
-    tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=0.5)
+    tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=fraction)
     monkeypatch.setattr(inputs, "fusion_config", lambda settings: tiny)
     monkeypatch.setattr(runner, "_align", align := FakeAlign(shift=0.5))  # a free pose moves 0.5 m along x
     monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
@@ -319,7 +322,7 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
         assert (job.kind, job.realign, job.tiles, job.metrics["realign"]) == ("align", True, [[0, 0], [1, 0]], True)
         assert env.get(f"/v1/jobs/{job.id}").json()["realign"] is True
         assert align.frozen == {}  # no field held: every tile trained again, from the refined poses: half the steps
-        assert align.config.align_iterations_per_tile == round(tiny.align_iterations_per_tile / 2)
+        assert align.config.align_iterations_per_tile == round(tiny.align_iterations_per_tile * fraction)
         free = {s.session_id for s in align.calls[-1][1] if s.free}
         assert free == {"a", "b", "c", "base", "d", "e"}  # f reaches tile (2, 0), outside: it holds the border
         assert pose_x() == {"a": 11.0, "b": 13.0, "c": 56.0, "f": 120.5, "base": 15.0, "d": 16.5 + 0.5, "e": 18.5}
@@ -329,7 +332,8 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
             assert db.get(Tile, (0, 0)).align_field_sha256 is not None
         recon = {(j.tile_i, j.tile_j): j for j in third[1:]}
         assert set(recon) == {(0, 0), (1, 0)} and all(j.kind == "reconstruct" for j in recon.values())
-        assert fusion.warm_kind == "alignment"  # the last one started from the new alignment's field
+        # the last one started from the new alignment's field, or without one from its own last reconstruction
+        assert fusion.warm_kind == ("alignment" if fraction else "reconstruction")
 
         fourth = add("g", 20.0)  # the re-aligned map is joint again: the next session is tracked against it
         assert fourth[0].realign is False and set(align.frozen) == {(0, 0)}
