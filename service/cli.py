@@ -230,9 +230,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise
     except Exception as exc:  # one line for people; the traceback only at debug level
         logging.getLogger(__name__).debug("command failed", exc_info=exc)
-        message = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
-        print(f"fleetmap: error: {message}", file=sys.stderr)
+        print(f"fleetmap: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_ERROR
+
+
+def _one_line(exc: Exception) -> str:
+    """``exc`` for people, on one line; settings errors name their environment variable."""
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError) and exc.title == "Settings":
+        return "; ".join(("FLEETMAP_" + "_".join(map(str, e["loc"])).upper() + ": " if e["loc"] else "")
+                         + e["msg"].removeprefix("Value error, ") for e in exc.errors())
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else exc.__class__.__name__
 
 
 if __name__ == "__main__":

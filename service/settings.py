@@ -6,7 +6,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fusion.config import FusionConfig
@@ -32,6 +32,11 @@ class Settings(BaseSettings):
     max_faces: int = Field(default=2_000_000, gt=0)
     max_coordinate_m: float = Field(default=1000.0, gt=0)
     fusion_preset: str = "cpu"
+    fusion_set: str = Field(
+        default="",
+        description="Overrides of the preset's FusionConfig fields, 'KEY=VALUE;KEY=VALUE' (as `fleetmap bench "
+        "--set`), e.g. 'realign_share=0.5;realign_iterations_fraction=0'; checked at start-up",
+    )
     fusion_queue: str = "fusion"
     scheduler_interval_s: float = Field(default=5.0, gt=0)
     lease_s: float = Field(
@@ -90,6 +95,15 @@ class Settings(BaseSettings):
                 return "off"
         return value
 
+    @model_validator(mode="after")
+    def _fusion_config_valid(self) -> Settings:
+        """An unknown preset, key or value stops the process at start-up, not at its first fusion."""
+        try:
+            fusion_config(self)
+        except ValueError as exc:
+            raise ValueError(f"FLEETMAP_FUSION_PRESET / FLEETMAP_FUSION_SET: {exc}") from None
+        return self
+
     @property
     def auth_enabled(self) -> bool:
         return self.auth == "on"
@@ -127,5 +141,8 @@ def get_settings() -> Settings:
 
 
 def fusion_config(settings: Settings) -> FusionConfig:
-    """The configured preset (``FLEETMAP_FUSION_PRESET``: ``cpu``, ``paper`` or ``tiny``)."""
-    return FusionConfig.preset(settings.fusion_preset)
+    """The configured preset (``FLEETMAP_FUSION_PRESET``: ``cpu``, ``paper`` or ``tiny``) with the overrides
+    of ``FLEETMAP_FUSION_SET``; raises ``ValueError`` naming what does not parse."""
+    config = FusionConfig.preset(settings.fusion_preset)
+    items = [item.strip() for item in settings.fusion_set.split(";") if item.strip()]
+    return config.with_overrides(items) if items else config
