@@ -140,7 +140,12 @@ class FusionConfig:
     # and bend leave dm a rigid fit cannot remove, ~1/20: matching them stiffly hands the distortion on to
     # the chain, fine_same_session above). Start poses, 3x3 bench, GPS 1.5 m, seeds 0/1/2 (m / °): exact
     # 0.117/0.150, 0.082/0.139, 0.098/0.127 -> 0.093/0.108, 0.045/0.061, 0.061/0.065; camera 0.519, 0.287,
-    # 0.345 -> 0.516, 0.294, 0.340 m
+    # 0.345 -> 0.516, 0.294, 0.340 m. Whole pipeline (fused geo F / sem F / pose m, same data, one run each; ground
+    # matches then trusted by their spread too): exact 0 0.983/0.811/0.124 -> 0.985/0.821/0.098, exact 1
+    # 0.982/0.769/0.091 -> 0.983/0.784/0.054, camera 1 0.902/0.403/0.282 -> 0.929/0.423/0.290, camera 0
+    # 0.815/0.354/0.475 -> 0.747/0.347/0.474; as now (the ground only with fine_noise_ground) camera 0
+    # 0.804/0.359/0.478 -> 0.773/0.357/0.477. Off until it stops costing a camera fleet geo F; on for lidar-grade
+    # submaps (README, "a session's own overlaps")
     fine_own_overlap: bool = False
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
@@ -232,7 +237,10 @@ class FusionConfig:
     # re-alignment, all steps -> half (geo F / sem F / pose m, re-alignment s): exact 1 0.982 / 0.773 / 0.091,
     # 214 s -> 0.980 / 0.787 / 0.091, 161 s; camera 1 0.902 / 0.412 / 0.286, 195 s -> 0.901 / 0.390 / 0.282,
     # 128 s; exact 0 0.983 / 0.803 / 0.124, 204 s -> 0.981 / 0.808 / 0.124, 135 s (the joint fusions 0.98 / 0.76-0.80 /
-    # 0.09-0.12; README, "A map grown session by session")
+    # 0.09-0.12; README, "A map grown session by session"). 0: registration alone, no field trained, every tile
+    # re-fused from its own last reconstruction: the addition 34-49 % of a full fusion instead of 60-68 %, but
+    # the old map's fine errors survive the short warm re-fusion (exact 0 sem F 0.757 against 0.811 jointly,
+    # exact 1 0.753 / 0.769, camera 1 geo F 0.884 / 0.902; README, "Re-alignment by registration alone")
     realign_iterations_fraction: float = 0.5
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). New session's
     # pose RMSE, 2x2 bench, 3 sessions, camera seeds 0/1: 60/tile 0.280/0.334 m, 240/tile 0.171/0.243 m (+9 s)

@@ -214,8 +214,12 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             g, u = ground & part, ~ground & part
             gains = np.where(g, _noise_gain(r0[g], sigma, config, config.fine_noise_ground and not basin),
                              _noise_gain(r0[u], sigma, config, not basin))[part]
-            if is_own:  # own-session overlaps count as far as they fit rigidly at the finest radius
-                trust = _noise_gain(r0[part], config.fine_min_dist_m / 2, config, not basin)
+            if is_own:  # own-session overlaps count as far as they fit rigidly at the finest radius (the ground
+                # only with fine_noise_ground: a monocular road is offset in height by its submap's scale while
+                # its residuals stay tight)
+                finest = config.fine_min_dist_m / 2
+                trust = np.where(g, _noise_gain(r0[g], finest, config, config.fine_noise_ground and not basin),
+                                 _noise_gain(r0[u], finest, config, not basin))[part]
                 gains = gains * (trust / config.fine_noise_max_gain if not basin and config.fine_noise_max_gain > 1 else 0.0)
             else:
                 gain = float(gains.mean())

@@ -322,13 +322,14 @@ def _distorted(mesh: SemanticMesh) -> SemanticMesh:
 
 def test_a_sessions_own_overlaps_hold_its_chain_as_far_as_they_fit_rigidly() -> None:
     """``fine_own_overlap``: consecutive submaps of one session match each other too, weighted by how well
-    they fit rigidly at the finest radius. Exact surfaces pull the second onto the first (0.39 m → mm);
+    they fit rigidly at the finest radius (ground-like matches only with ``fine_noise_ground``: a monocular
+    road's height bias leaves tight residuals). Exact surfaces pull the second onto the first (0.39 m → cm);
     distorted ones (scale and bend, as a monocular session's) barely move it, since matching them stiffly
     would hand their distortion on to the chain. Off, a session's own overlaps are not matched at all."""
     exact = _lone_session(_block(extra_box=True))
-    assert _relative(_run(exact).poses)[0] > 0.38  # off: only other sessions are matched; there are none
+    assert _relative(_run(exact, fine_own_overlap=False).poses)[0] > 0.38  # off: only other sessions are matched; there are none
     t, deg = _relative(_run(exact, fine_own_overlap=True).poses)
-    assert t < 0.02 and deg < 0.05, (t, deg)
+    assert t < 0.04 and deg < 0.1, (t, deg)
     res = _run(_lone_session(_distorted(_block(extra_box=True))), fine_own_overlap=True)
     assert res.metrics["rounds"][-1]["matches"] > 100
     assert _relative(res.poses)[0] > 0.3  # matched, but trusted ~1/20 of an exact overlap
