@@ -211,16 +211,11 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             part = (np.arange(len(src)) >= n_other) == is_own
             if not part.any():
                 continue
-            g, u = ground & part, ~ground & part
-            gains = np.where(g, _noise_gain(r0[g], sigma, config, config.fine_noise_ground and not basin),
-                             _noise_gain(r0[u], sigma, config, not basin))[part]
-            if is_own:  # own-session overlaps count as far as they fit rigidly at the finest radius (the ground
-                # only with fine_noise_ground: a monocular road is offset in height by its submap's scale while
-                # its residuals stay tight)
-                finest = config.fine_min_dist_m / 2
-                trust = np.where(g, _noise_gain(r0[g], finest, config, config.fine_noise_ground and not basin),
-                                 _noise_gain(r0[u], finest, config, not basin))[part]
-                gains = gains * (trust / config.fine_noise_max_gain if not basin and config.fine_noise_max_gain > 1 else 0.0)
+            gains = _gains(r0, ground, part, sigma, config, basin)
+            if is_own:  # own-session overlaps count as far as they fit rigidly at the finest radius (0 while
+                # rounds are wider than fine_max_dist_m or without the gain)
+                trust = _gains(r0, ground, part, config.fine_min_dist_m / 2, config, basin)
+                gains *= trust / config.fine_noise_max_gain if not basin and config.fine_noise_max_gain > 1 else 0.0
             else:
                 gain = float(gains.mean())
             counts = np.bincount(own[src[part]], minlength=n_subs)
@@ -262,6 +257,16 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     free = np.array([s.free for s in subs])
     rms = float(np.sqrt((moved[free] ** 2).sum(1).mean())) if free.any() else 0.0
     return FineResult(list(final), {"rounds": rounds, "moved_rms_m": rms})
+
+
+def _gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sigma: float, config: FusionConfig,
+           basin: bool) -> np.ndarray:
+    """Per match of ``part`` (bool per match), :func:`_noise_gain` of its kind at scale ``sigma``: ground-like
+    matches by the ground's spread (only with ``fine_noise_ground``: a monocular road is offset in height by its
+    submap's scale error while its residuals stay tight), the others by theirs; 1 in a basin round."""
+    g, u = ground & part, ~ground & part
+    return np.where(g, _noise_gain(residual[g], sigma, config, config.fine_noise_ground and not basin),
+                    _noise_gain(residual[u], sigma, config, not basin))[part]
 
 
 def _noise_gain(residual: np.ndarray, sigma: float, config: FusionConfig, on: bool = True) -> float:
@@ -485,7 +490,8 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
     """(source, target) sample indices: each sample's nearest sample of another submap within ``radius``
     whose normal agrees with its own (dot ≥ ``min_dot``; none: unmatched), never of a submap in the same
     ``group`` (per submap index; default: each its own, i.e. only the own submap) unless the sample is one of
-    ``within`` (per sample, bool: these match the other submaps of their group too). One k-d tree per submap, each
+    ``within`` (per sample, bool: these match the other submaps of their group too); ``same``: the other way
+    round, only the other submaps of the own group (a session's own overlaps). One k-d tree per submap, each
     sample queried against the submaps whose boxes (grown by ``radius``) overlap its own: linear in the
     overlaps, not quadratic in the region's submaps; a single tree over all samples would let a submap's
     own samples, denser nearby, hide the others'."""
