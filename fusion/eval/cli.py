@@ -130,7 +130,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         try:
             base = base.with_overrides(args.set)
         except ValueError as exc:
-            return _fail(str(exc))
+            return _fail(f"--set {exc}")
         config = base.with_(iterations=args.iterations or base.iterations,
                             align_iterations_per_tile=args.align_iterations or base.align_iterations_per_tile)
     gps_noise = (args.gps_noise_m, args.gps_noise_deg)

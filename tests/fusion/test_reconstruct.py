@@ -91,7 +91,7 @@ def test_config_overrides_parse_each_fields_type() -> None:
     with pytest.raises(ValueError, match="unknown labels: car"):
         FusionConfig().with_overrides(["consensus_movable=car"])
     for bad in (["nope=1"], ["iterations=1.5"], ["consensus=maybe"], ["iterations"]):
-        with pytest.raises(ValueError, match="--set"):
+        with pytest.raises(ValueError, match=f"^'{bad[0]}': "):  # the item named; the caller says where it came from
             FusionConfig().with_overrides(bad)
 
 
