@@ -145,7 +145,8 @@ class FusionConfig:
     # 0.982/0.769/0.091 -> 0.983/0.784/0.054, camera 1 0.902/0.403/0.282 -> 0.929/0.423/0.290, camera 0
     # 0.815/0.354/0.475 -> 0.747/0.347/0.474; as now (the ground only with fine_noise_ground) camera 0
     # 0.804/0.359/0.478 -> 0.773/0.357/0.477, exact 0 0.983/0.797/0.125 -> 0.984/0.812/0.113, exact 2
-    # 0.977/0.756/0.100 -> 0.984/0.806/0.075. Off until it stops costing a camera fleet geo F; on for lidar-grade
+    # 0.977/0.756/0.100 -> 0.984/0.806/0.075, camera 1 0.898/0.410/0.284 -> 0.922/0.409/0.283, camera 2
+    # 0.860/0.375/0.318 -> 0.853/0.386/0.318. Off until it stops costing a camera fleet geo F; on for lidar-grade
     # submaps (README, "a session's own overlaps")
     fine_own_overlap: bool = False
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
