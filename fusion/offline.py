@@ -112,7 +112,8 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
                refined: dict[str, Pose] | None = None, fixed_poses: dict[str, Pose] | None = None,
                on_tile: Callable[[tuple[int, int], FusionResult], None] | None = None,
                skipped: dict[str, str] | None = None,
-               align_metrics: list[dict[str, Any]] | None = None) -> dict[tuple[int, int], FusionResult]:
+               align_metrics: list[dict[str, Any]] | None = None, grow: bool = False,
+               ) -> dict[tuple[int, int], FusionResult]:
     """Fuse ``tile_keys``: align each region, then reconstruct each tile with the poses fixed.
 
     1. Regions: the requested tiles linked by the submaps overlapping them (``fusion.regions``).
@@ -120,7 +121,9 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
        starting from ``refined`` (a previous fusion) else GPS; the GPS prior anchors to the GPS fix.
        ``refined`` (submap id → map pose) is updated in place with the aligned poses.
     3. Reconstruction (``reconstruct_tile``): each tile with every submap held at its aligned pose, in sorted
-       (i, j) order so neighbours reconstructed earlier pin the shared border.
+       (i, j) order so neighbours reconstructed earlier pin the shared border. A tile's submaps: those whose
+       GPS box or aligned surface reaches it (:func:`members`); ``grow``: the tiles only an aligned surface
+       reaches are reconstructed too (else only ``tile_keys``).
 
     Tiles are processed in sorted order whatever order ``tile_keys`` lists them in, so the result does
     not depend on it. ``fixed_poses``: if given, every submap is held at that pose and alignment is
@@ -133,7 +136,24 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     if fixed_poses is None:
         _align_regions(submaps, keys, config, tile_size, progress, refined, skipped, align_metrics, fields)
     poses = fixed_poses if fixed_poses is not None else refined
+    if grow:
+        keys = sorted(set(keys).union(*members(submaps, poses, tile_size, config).values()))
     return reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped, warm=fields)
+
+
+def members(submaps: list[LoadedSubmap], poses: dict[str, Pose], tile_size: float,
+            config: FusionConfig) -> dict[str, set[tuple[int, int]]]:
+    """Each submap's tiles, as the service keeps them: those of its GPS box, joined by every tile its
+    surface reaches (within ``refusion_band_m``) at its pose in ``poses``, where it has one: a submap whose
+    GPS erred by more than its sigma is fused where the alignment put it (``fusion.tiles.surface_tiles``;
+    the service's ``worker.results._join_surface_tiles``)."""
+    out = {}
+    for s in submaps:
+        pose = poses.get(s.input.id)
+        reach = [] if pose is None else tiles.surface_tiles(s.input.mesh.vertices, s.input.mesh.faces, pose,
+                                                            tile_size, config.refusion_band_m)
+        out[s.input.id] = set(s.tiles).union(reach)
+    return out
 
 
 def _staged(progress: ProgressCallback | None, label: str) -> ProgressCallback | None:
@@ -186,7 +206,7 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
                        previous: dict[tuple[int, int], FusionResult] | None = None,
                        warm: dict[tuple[int, int], dict[str, Any]] | None = None,
                        ) -> dict[tuple[int, int], FusionResult]:
-    """Each tile in order with every submap held at ``poses`` (else its GPS pose); neighbours
+    """Each tile in order with every submap of it (:func:`members`) held at ``poses`` (else its GPS pose); neighbours
     reconstructed earlier (here, else in ``previous``: the tiles a re-fusion leaves as they are) pin the
     shared border. ``warm``: field states by tile to start from (``reconstruct_tile``).
 
@@ -202,9 +222,10 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
         done = results.get(k) or before.get(k)
         return done.border if done is not None else None
 
+    reach = members(submaps, poses, tile_size, config)
     for n, key in enumerate(keys):
         inputs = [replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=False)
-                  for s in submaps if key in s.tiles]
+                  for s in submaps if key in reach[s.input.id]]
         pins = tiles.border_pins(*key, border_of)
         label = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)})"
         last = before.get(key)
@@ -243,8 +264,9 @@ def fuse_directory(in_dir: str | Path, out_dir: str | Path, config: FusionConfig
 
     skipped: dict[str, str] = {}
     align: list[dict[str, Any]] = []
-    fuse_tiles(submaps, keys, config, tile_size, progress, refined, on_tile=write_tile, skipped=skipped,
-               align_metrics=align)
+    done = fuse_tiles(submaps, keys, config, tile_size, progress, refined, on_tile=write_tile, skipped=skipped,
+                      align_metrics=align, grow=True)
+    keys = sorted(set(keys) | set(done))  # with the tiles only an aligned surface reaches
     poses = [{"session_id": s.input.session_id, "seq": s.input.seq, "id": s.input.id, "pose_gps": s.pose_gps.to_json(),
               "pose_refined": refined[s.input.id].to_json() if s.input.id in refined else None} for s in submaps]
     poses.sort(key=lambda p: (p["session_id"], p["seq"]))

@@ -151,6 +151,35 @@ def test_fixed_poses_skip_alignment(multi_tile_uploads: Path, monkeypatch: pytes
     assert warmed and not any(warmed)  # no alignment, no field to start from
 
 
+def test_a_submap_posed_where_its_gps_box_did_not_reach_is_fused_there(multi_tile_uploads: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """As in the service: a submap joins every tile its surface reaches at its aligned pose, beside those of
+    its GPS box (a GPS error beyond its sigma); ``grow`` reconstructs the tiles only such a surface reaches."""
+    import fusion.reconstruct
+    from fusion.offline import fuse_tiles, load_directory
+    from fusion.types import Pose
+
+    submaps = load_directory(multi_tile_uploads, TILE)
+    keys = sorted({k for s in submaps for k in s.tiles})
+    moved = submaps[0]
+    far = (max(i for i, _ in keys) + 3, 0)  # no GPS box comes near it
+    shift = np.array([far[0] * TILE + TILE / 2, 0.0, 0.0]) - moved.pose_gps.apply(moved.input.mesh.vertices).mean(0)
+    shift[1] = 0.0
+    fixed = {s.input.id: s.pose_gps for s in submaps}
+    fixed[moved.input.id] = Pose(moved.pose_gps.t + shift, moved.pose_gps.q)
+    for grow in (False, True):
+        calls: list = []
+        monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", _fake_fuse_tile(calls))
+        fuse_tiles(submaps, keys, tiny_config(), TILE, fixed_poses=fixed, grow=grow)
+        done = [(t.i, t.j) for t, _, _ in calls]
+        assert done == sorted(done)
+        held = {(t.i, t.j): set(inputs) for t, inputs, _ in calls}
+        assert all(moved.input.id in held[k] for k in moved.tiles)  # its GPS box's tiles keep it
+        extra = set(done) - set(keys)
+        assert (far in extra) == grow and set(keys) <= set(done)
+        assert all(held[k] == {moved.input.id} and k[0] > max(i for i, _ in keys) for k in extra)
+
+
 def test_bad_ply_names_the_file(uploads: Path, tmp_path: Path) -> None:
     from fusion.offline import OfflineInputError, load_directory
 
