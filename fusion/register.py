@@ -211,12 +211,10 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             part = (np.arange(len(src)) >= n_other) == is_own
             if not part.any():
                 continue
-            gains = _gains(r0, ground, part, sigma, config, basin)
-            if is_own:  # own-session overlaps count as far as they fit rigidly at the finest radius (0 while
-                # rounds are wider than fine_max_dist_m or without the gain)
-                trust = _gains(r0, ground, part, config.fine_min_dist_m / 2, config, basin)
-                gains *= trust / config.fine_noise_max_gain if not basin and config.fine_noise_max_gain > 1 else 0.0
+            if is_own:  # own-session overlaps: per session, by their spread, as far as the session fits rigidly
+                gains = _own_gains(r0, ground, part, of[own[src]], sigma, config, basin)
             else:
+                gains = _gains(r0, ground, part, sigma, config, basin)
                 gain = float(gains.mean())
             counts = np.bincount(own[src[part]], minlength=n_subs)
             w_np[part] = config.fine_weight * gains / counts[own[src[part]]]
@@ -267,6 +265,46 @@ def _gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sigma: fl
     g, u = ground & part, ~ground & part
     return np.where(g, _noise_gain(residual[g], sigma, config, config.fine_noise_ground and not basin),
                     _noise_gain(residual[u], sigma, config, not basin))[part]
+
+
+def _own_gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, session: np.ndarray, sigma: float,
+               config: FusionConfig, basin: bool) -> np.ndarray:
+    """Per own-overlap match of ``part`` (``session``: the matching session, per match), from its session's own
+    residuals: the gain of its kind at the round's scale ``sigma`` (:func:`_noise_gain`, ground-like and other
+    matches each by their spread) times its *trust*, the gain the same residuals earn at the finest radius's
+    Cauchy scale (``fine_min_dist_m`` / 2) over ``fine_noise_max_gain``: exact overlaps, cm apart after a rigid
+    fit, count nearly fully, a monocular session's, whose scale and bend leave dm, ~1/20. A ground-like match's
+    two gains are let up from 1 only as far as the session's walls fit tighter than that finest scale
+    (:func:`_excess`): as if ``fine_noise_ground`` were on for an exact session and off for a monocular one.
+
+    Why per session and why the walls speak for the ground: a session's overlaps with itself repeat its own
+    errors, so they are evidence as far as its submaps are rigid copies of one world. A monocular road fits as
+    tight as an exact one while lying (s - 1) × the camera height too high or low for a scale error s; only
+    the walls show that error (a wall r metres off moves by (s - 1) r). Zero in a basin round (rounds wider
+    than ``fine_max_dist_m``) and without the gain."""
+    out = np.zeros(int(part.sum()))
+    if basin or config.fine_noise_max_gain <= 1:
+        return out
+    idx = np.flatnonzero(part)
+    fine, top = config.fine_min_dist_m / 2, config.fine_noise_max_gain
+    for k in np.unique(session[idx]):
+        mine = session[idx] == k
+        g, u = ground[idx] & mine, ~ground[idx] & mine
+        r_g, r_u = residual[idx[g]], residual[idx[u]]
+        out[u] = _noise_gain(r_u, sigma, config) * _noise_gain(r_u, fine, config) / top
+        if g.any():
+            rigid = _excess(r_u, fine, config) if not config.fine_noise_ground else 1.0
+            lift = [1.0 + (_noise_gain(r_g, at, config) - 1.0) * rigid for at in (sigma, fine)]
+            out[g] = lift[0] * lift[1] / top
+    return out
+
+
+def _excess(residual: np.ndarray, sigma: float, config: FusionConfig) -> float:
+    """How far :func:`_noise_gain` at ``sigma`` rises above 1, as a share of its range: 0 for residuals no
+    tighter than ``sigma`` (or none), 1 at ``fine_noise_max_gain``."""
+    if len(residual) == 0:
+        return 0.0
+    return (_noise_gain(residual, sigma, config) - 1.0) / (config.fine_noise_max_gain - 1.0)
 
 
 def _noise_gain(residual: np.ndarray, sigma: float, config: FusionConfig, on: bool = True) -> float:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.register import _correspondences, fine_register, match_radii, surface_samples
+from fusion.register import _correspondences, _own_gains, fine_register, match_radii, surface_samples
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
@@ -333,3 +333,28 @@ def test_a_sessions_own_overlaps_hold_its_chain_as_far_as_they_fit_rigidly() -> 
     res = _run(_lone_session(_distorted(_block(extra_box=True))), fine_own_overlap=True)
     assert res.metrics["rounds"][-1]["matches"] > 100
     assert _relative(res.poses)[0] > 0.3  # matched, but trusted ~1/20 of an exact overlap
+
+
+def test_a_sessions_own_ground_counts_only_as_far_as_its_walls_fit_rigidly() -> None:
+    """Own-overlap weights per session: a monocular session's road fits as tight as an exact one's (its scale
+    error lifts it as a whole) but its walls do not; only the session whose walls fit within cm has its
+    ground weighted by its spread. Each session by its own residuals, whatever the other's."""
+    rng = np.random.default_rng(0)
+    n = 400
+    cfg = CFG.with_(fine_noise_max_gain=20.0, fine_noise_floor_m=0.02, fine_min_dist_m=0.25)
+    # per session: walls, then ground; exact walls ~2 cm, monocular walls ~20 cm, every road ~1 cm
+    residual = np.concatenate([rng.normal(0, 0.02, n), rng.normal(0, 0.01, n),
+                               rng.normal(0, 0.20, n), rng.normal(0, 0.01, n)])
+    ground = np.tile(np.repeat([False, True], n), 2)
+    session = np.repeat([0, 1], 2 * n)
+    part = np.ones(4 * n, bool)
+    w = _own_gains(residual, ground, part, session, 0.5, cfg, basin=False)
+    exact_walls, exact_ground, mono_walls, mono_ground = (w[k * n:(k + 1) * n] for k in range(4))
+    assert exact_walls.min() > 10 and exact_ground.min() > 10  # ~18 and ~15: nearly fully trusted
+    np.testing.assert_allclose(mono_ground, 1 / 20)  # the ground rule: gain 1, trust 1/20
+    assert mono_walls.max() < 0.5  # (0.5 / 0.2)² × 1/20
+    alone = _own_gains(residual[2 * n:], ground[2 * n:], part[2 * n:], session[2 * n:], 0.5, cfg, basin=False)
+    np.testing.assert_allclose(alone, np.concatenate([mono_walls, mono_ground]))  # the other session has no say
+    lifted = _own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_noise_ground=True), basin=False)
+    assert lifted[3 * n:].min() > 10  # fine_noise_ground: every session's ground by its spread
+    assert not _own_gains(residual, ground, part, session, 0.5, cfg, basin=True).any()
