@@ -212,8 +212,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             if not part.any():
                 continue
             if is_own:  # own-session overlaps: per session, by their spread, as far as the session fits rigidly
-                fitted = _rigidly_fitted(posed[src], posed[dst], mean_n, own[src], own[dst], r0, part)
-                gains = _own_gains(r0, fitted, ground, part, of[own[src]], sigma, config, basin)
+                gains = _own_gains(r0, ground, part, of[own[src]], sigma, config, basin)
             else:
                 gains = _gains(r0, ground, part, sigma, config, basin)
                 gain = float(gains.mean())
@@ -268,17 +267,15 @@ def _gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sigma: fl
                     _noise_gain(residual[u], sigma, config, not basin))[part]
 
 
-def _own_gains(residual: np.ndarray, fitted: np.ndarray, ground: np.ndarray, part: np.ndarray, session: np.ndarray,
-               sigma: float, config: FusionConfig, basin: bool) -> np.ndarray:
+def _own_gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, session: np.ndarray, sigma: float,
+               config: FusionConfig, basin: bool) -> np.ndarray:
     """Per own-overlap match of ``part`` (``session``: the matching session, per match), from its session's own
     residuals: the gain of its kind at the round's scale ``sigma`` (:func:`_noise_gain`, ground-like and other
-    matches each by their spread) times the session's *trust*: how far its walls (non-ground matches) fit
-    tighter than the finest radius's Cauchy scale (``fine_min_dist_m`` / 2) once each pair of its submaps is
-    rigidly re-fitted (``fitted``, per match: :func:`_rigidly_fitted`), :func:`_excess` in [0, 1]. Exact
-    overlaps, cm apart after a rigid fit, ~0.8; a monocular session's, whose scale and bend leave dm, 0: the
-    fit, not the current misalignment, is judged, so a lone exact session whose submaps start far apart is
-    trusted from the first round. A ground-like match's two gains are let up from 1 only as far as that trust
-    goes (as if ``fine_noise_ground`` were on for an exact session and off for a monocular one).
+    matches each by their spread) times its *trust*, the gain the same residuals earn at the finest radius's
+    Cauchy scale (``fine_min_dist_m`` / 2) over ``fine_noise_max_gain``: exact overlaps, cm apart after a rigid
+    fit, count nearly fully, a monocular session's, whose scale and bend leave dm, ~1/20. A ground-like match's
+    two gains are let up from 1 only as far as the session's walls fit tighter than that finest scale
+    (:func:`_excess`): as if ``fine_noise_ground`` were on for an exact session and off for a monocular one.
 
     Why per session and why the walls speak for the ground: a session's overlaps with itself repeat its own
     errors, so they are evidence as far as its submaps are rigid copies of one world. A monocular road fits as
@@ -293,42 +290,12 @@ def _own_gains(residual: np.ndarray, fitted: np.ndarray, ground: np.ndarray, par
     for k in np.unique(session[idx]):
         mine = session[idx] == k
         g, u = ground[idx] & mine, ~ground[idx] & mine
-        trust = _excess(fitted[idx[u]], fine, config)
-        out[u] = _noise_gain(residual[idx[u]], sigma, config) * trust
+        r_g, r_u = residual[idx[g]], residual[idx[u]]
+        out[u] = _noise_gain(r_u, sigma, config) * _noise_gain(r_u, fine, config) / top
         if g.any():
-            lift = trust if not config.fine_noise_ground else 1.0
-            out[g] = np.prod([1.0 + (_noise_gain(residual[idx[g]], at, config) - 1.0) * lift for at in (sigma, fine)]) / top
-    return out
-
-
-def _rigidly_fitted(p_src: np.ndarray, p_dst: np.ndarray, normal: np.ndarray, a: np.ndarray, b: np.ndarray,
-                    residual: np.ndarray, part: np.ndarray, min_matches: int = 12) -> np.ndarray:
-    """Per match (all of them; those outside ``part`` keep their ``residual``): the point-to-plane residual
-    left once the two submaps it joins (``a`` owns ``p_src``, ``b`` owns ``p_dst``; posed, metres) are moved
-    rigidly against each other to fit their matches of ``part`` best (linearised least squares, twice
-    reweighted by a Cauchy of their spread): what a rigid pose cannot remove, whatever the pair's current
-    misalignment. Pairs with fewer than ``min_matches`` matches keep their residuals."""
-    out = residual.astype(np.float64, copy=True)
-    idx = np.flatnonzero(part)
-    lo, hi = np.minimum(a[idx], b[idx]), np.maximum(a[idx], b[idx])
-    moving_src = a[idx] == lo  # the pair's lower-indexed submap moves; its point is the lever arm
-    point = np.where(moving_src[:, None], p_src[idx], p_dst[idx])
-    jac = np.hstack([np.cross(point, normal[idx]), normal[idx]]) * np.where(moving_src, 1.0, -1.0)[:, None]
-    pair = lo * (int(max(a.max(initial=0), b.max(initial=0))) + 1) + hi
-    for key in np.unique(pair):
-        m = np.flatnonzero(pair == key)
-        if len(m) < min_matches:
-            continue
-        j = jac[m].copy()
-        j[:, :3] -= np.cross(point[m].mean(0), normal[idx[m]]) * np.where(moving_src[m], 1.0, -1.0)[:, None]
-        r = residual[idx[m]]
-        left = r
-        for _ in range(3):
-            spread = max(1e-3, 1.4826 * float(np.median(np.abs(left))))
-            w = np.sqrt(1.0 / (1.0 + (left / spread) ** 2))
-            xi = np.linalg.lstsq(j * w[:, None], -r * w, rcond=1e-6)[0]
-            left = r + j @ xi
-        out[idx[m]] = left
+            rigid = _excess(r_u, fine, config) if not config.fine_noise_ground else 1.0
+            lift = [1.0 + (_noise_gain(r_g, at, config) - 1.0) * rigid for at in (sigma, fine)]
+            out[g] = lift[0] * lift[1] / top
     return out
 
 

@@ -5,14 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.register import (
-    _correspondences,
-    _own_gains,
-    _rigidly_fitted,
-    fine_register,
-    match_radii,
-    surface_samples,
-)
+from fusion.register import _correspondences, _own_gains, fine_register, match_radii, surface_samples
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
@@ -355,38 +348,13 @@ def test_a_sessions_own_ground_counts_only_as_far_as_its_walls_fit_rigidly() -> 
     ground = np.tile(np.repeat([False, True], n), 2)
     session = np.repeat([0, 1], 2 * n)
     part = np.ones(4 * n, bool)
-    w = _own_gains(residual, residual, ground, part, session, 0.5, cfg, basin=False)
+    w = _own_gains(residual, ground, part, session, 0.5, cfg, basin=False)
     exact_walls, exact_ground, mono_walls, mono_ground = (w[k * n:(k + 1) * n] for k in range(4))
     assert exact_walls.min() > 10 and exact_ground.min() > 10  # ~18 and ~15: nearly fully trusted
     np.testing.assert_allclose(mono_ground, 1 / 20)  # the ground rule: gain 1, trust 1/20
     assert mono_walls.max() < 0.5  # (0.5 / 0.2)² × 1/20
-    alone = _own_gains(residual[2 * n:], residual[2 * n:], ground[2 * n:], part[2 * n:], session[2 * n:], 0.5, cfg, basin=False)
+    alone = _own_gains(residual[2 * n:], ground[2 * n:], part[2 * n:], session[2 * n:], 0.5, cfg, basin=False)
     np.testing.assert_allclose(alone, np.concatenate([mono_walls, mono_ground]))  # the other session has no say
-    lifted = _own_gains(residual, residual, ground, part, session, 0.5, cfg.with_(fine_noise_ground=True), basin=False)
+    lifted = _own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_noise_ground=True), basin=False)
     assert lifted[3 * n:].min() > 10  # fine_noise_ground: every session's ground by its spread
-    assert not _own_gains(residual, residual, ground, part, session, 0.5, cfg, basin=True).any()
-
-
-def test_a_rigid_refit_of_a_pair_leaves_what_no_rigid_pose_removes() -> None:
-    """``_rigidly_fitted``: matches between two submaps on walls facing x and y, two of each at different
-    ranges, and a road. Moved rigidly against each other (0.3 m, 1°) their residuals vanish after the re-fit;
-    scaled by 2 % about a point 10 m away, near and far walls shift by different amounts and keep what a rigid
-    pose cannot take up. Either way round a match is listed (a→b or b→a)."""
-    rng = np.random.default_rng(3)
-    n = 300
-    axis = np.array([0, 0, 1, 1, 2])
-    normal = np.repeat(np.eye(3)[axis], n, axis=0)
-    p = rng.uniform(-8, 8, size=(5 * n, 3))
-    p[normal.astype(bool)] = np.repeat([4.0, 12.0, -3.0, 6.0, 0.0], n)  # each surface in its plane
-    m = 5 * n  # matches in all
-    a = np.where(np.arange(m) % 2 == 0, 0, 1)  # half the matches listed b → a
-    moved = Pose(np.array([0.3, -0.1, 0.05]), rot_z(1.0)).apply(p)
-    for other, tight in ((moved, True), (1.02 * (p - 10.0) + 10.0, False)):
-        src = np.where(a[:, None] == 0, other, p)  # submap 0 is the moved one
-        dst = np.where(a[:, None] == 0, p, other)
-        residual = ((src - dst) * normal).sum(-1)
-        fitted = _rigidly_fitted(src, dst, normal, a, 1 - a, residual, np.ones(m, bool))
-        assert np.median(np.abs(residual)) > 0.05
-        assert (np.median(np.abs(fitted)) < 0.005) == tight, np.median(np.abs(fitted))
-    untouched = _rigidly_fitted(src, dst, normal, a, 1 - a, residual, np.zeros(m, bool))
-    np.testing.assert_array_equal(untouched, residual)
+    assert not _own_gains(residual, ground, part, session, 0.5, cfg, basin=True).any()
