@@ -135,20 +135,20 @@ class FusionConfig:
     # only walls, poles and other upright surfaces do)
     fine_same_session_ground: bool = True
     # a session's consecutive submaps match each other too, as data of their own beside the other sessions'
-    # matches: weighted by the gain their residuals earn at the finest radius over fine_noise_max_gain (so
-    # exact overlaps, cm apart after a rigid fit, count nearly fully, and a monocular session's, whose scale
-    # and bend leave dm a rigid fit cannot remove, ~1/20: matching them stiffly hands the distortion on to
-    # the chain, fine_same_session above). Start poses, 3x3 bench, GPS 1.5 m, seeds 0/1/2 (m / °): exact
-    # 0.117/0.150, 0.082/0.139, 0.098/0.127 -> 0.093/0.108, 0.045/0.061, 0.061/0.065; camera 0.519, 0.287,
-    # 0.345 -> 0.516, 0.294, 0.340 m. Whole pipeline (fused geo F / sem F / pose m, same data, one run each; ground
-    # matches then trusted by their spread too): exact 0 0.983/0.811/0.124 -> 0.985/0.821/0.098, exact 1
-    # 0.982/0.769/0.091 -> 0.983/0.784/0.054, camera 1 0.902/0.403/0.282 -> 0.929/0.423/0.290, camera 0
-    # 0.815/0.354/0.475 -> 0.747/0.347/0.474; as now (the ground only with fine_noise_ground) camera 0
-    # 0.804/0.359/0.478 -> 0.773/0.357/0.477, exact 0 0.983/0.797/0.125 -> 0.984/0.812/0.113, exact 2
-    # 0.977/0.756/0.100 -> 0.984/0.806/0.075, camera 1 0.898/0.410/0.284 -> 0.922/0.409/0.283, camera 2
-    # 0.860/0.375/0.318 -> 0.853/0.386/0.318. Off until it stops costing a camera fleet geo F; on for lidar-grade
-    # submaps (README, "a session's own overlaps")
-    fine_own_overlap: bool = False
+    # matches, per session (fusion.register._own_gains): weighted by the gain their residuals earn at the
+    # finest radius over fine_noise_max_gain (exact overlaps, cm apart after a rigid fit, count nearly fully; a
+    # monocular session's, whose scale and bend leave dm a rigid fit cannot remove, ~1/20: matching them stiffly
+    # hands the distortion on to the chain, fine_same_session above); ground-like matches weighted up by their
+    # spread only as far as the session's walls fit tighter than the finest Cauchy scale (a monocular road
+    # fits tight while its scale error lifts it). Whole pipeline, 3x3 bench, GPS 1.5 m, one run each, off -> on
+    # (geo F / sem F / pose m / deg; 2026-12-05, twenty-first session): exact 0 0.983/0.803/0.124/0.161 ->
+    # 0.984/0.817/0.105/0.127, exact 1 0.982/0.774/0.091/0.152 -> 0.982/0.760/0.073/0.118, exact 2
+    # 0.978/0.785/0.100/0.136 -> 0.985/0.800/0.078/0.103; camera 0 0.799/0.346/0.485 -> 0.780/0.352/0.477,
+    # camera 1 0.900/0.401/0.281 -> 0.919/0.420/0.283, camera 2 0.852/0.365/0.346 -> 0.859/0.384/0.332. Poses
+    # better on every exact seed, camera 0 loses ~0.02 geo F (camera 0's fused geo F varies 0.80-0.82 between
+    # runs). Judged by the residuals after a rigid re-fit of each pair instead, camera 0 lost 0.055: a monocular
+    # pair's small overlap fits rigidly (reverted). README, "A session's own overlaps by default"
+    fine_own_overlap: bool = True
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
@@ -360,7 +360,7 @@ class FusionConfig:
             raise ValueError(f"realign_share must be > 0 (> 1: never), got {self.realign_share}")
         if self.fine_same_session and self.fine_own_overlap:
             raise ValueError("fine_same_session and fine_own_overlap both match a session's own submaps: "
-                             "choose one")
+                             "set fine_own_overlap=false to use fine_same_session")
         if not 0 <= self.realign_iterations_fraction <= 1:
             raise ValueError(f"realign_iterations_fraction must be in [0, 1], got {self.realign_iterations_fraction}")
         if self.align_iterations_per_tile < 0:

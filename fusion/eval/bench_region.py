@@ -378,9 +378,9 @@ COMPONENTS: tuple[str, ...] = (
     "coarse_register=false",  # coarse session registration (fusion.coarse)
     "fine_register=false",  # joint point-to-plane registration of every submap (fusion.register)
     "fine_solver=lbfgs",  # ... solved by L-BFGS (150 steps per round), not Levenberg-Marquardt
-    "fine_own_overlap=true",  # ... a session's consecutive submaps matched too, trusted as far as they fit rigidly
-    "fine_same_session=true",  # ... matching samples to the own session's submaps too, pooled and unweighted
-    "fine_same_session=true,fine_same_session_ground=false",  # ... its upright surfaces only
+    "fine_own_overlap=false",  # ... a session's consecutive submaps not matched (trusted as far as they fit rigidly)
+    "fine_own_overlap=false,fine_same_session=true",  # ... matched instead pooled with the others, unweighted
+    "fine_own_overlap=false,fine_same_session=true,fine_same_session_ground=false",  # ... its upright surfaces only
     "fine_noise_max_gain=1",  # ... the data's weight not raised where their residuals are tight
     "fine_polish_rounds=0",  # ... not run once more after the field alignment
     "fine_normal_balance=0",  # ... samples by area, not spread over the directions vertical faces face
