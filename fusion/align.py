@@ -28,7 +28,7 @@ surface samples are drawn there: tracking against the map), tiles without one ar
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -36,6 +36,7 @@ import torch
 
 from fusion.coarse import coarse_register
 from fusion.config import FusionConfig
+from fusion.drift import Drift, corrected_input
 from fusion.errors import FusionError
 from fusion.field import SemanticSDFField, field_from_state, field_state
 from fusion.losses import field_losses, total_loss
@@ -60,6 +61,7 @@ class AlignResult:
     poses: dict[str, Pose]
     fields: dict[TileKey, dict[str, torch.Tensor]]
     metrics: dict[str, Any] = field(default_factory=dict)
+    drifts: dict[str, Drift] = field(default_factory=dict)  # per free submap whose drift was corrected
 
 
 @dataclass
@@ -119,9 +121,10 @@ def align_region(
         raise FusionError("align_region: no free submap to align", code="empty_tile")
     size = tiles[0].size_m
     origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
-    poses, gps, coarse = _region_poses(subs, origin, config, dev)
+    poses, gps, coarse, drifts = _region_poses(subs, origin, config, dev)
+    subs = [corrected_input(s, drifts.get(s.id)) for s in subs]  # the field sees each submap as corrected
     if config.align_iterations_per_tile == 0 and not frozen:  # registration only: no field is trained
-        return AlignResult(map_poses(poses, origin, subs), {}, {
+        return AlignResult(map_poses(poses, origin, subs), {}, drifts=drifts, metrics={
             "losses": {}, "iterations": 0, "incremental": False, "registration_only": True,
             "duration_s": time.perf_counter() - t_start, "duration_train_s": 0.0, "device": str(dev),
             "num_submaps": len(subs), "num_free": int(sum(s.free for s in subs)), "num_tiles": len(tiles),
@@ -154,7 +157,7 @@ def align_region(
         "skipped": skipped,
         "coarse": coarse,
     }
-    return AlignResult(map_poses(poses, origin, subs), fields, metrics)
+    return AlignResult(map_poses(poses, origin, subs), fields, metrics, drifts)
 
 
 def start_poses(submaps: list[SubmapInput], config: FusionConfig, device: str | None = None
@@ -166,17 +169,18 @@ def start_poses(submaps: list[SubmapInput], config: FusionConfig, device: str | 
     subs = sorted(submaps, key=lambda s: s.id)
     cents = np.stack([s.pose_init.apply(s.mesh.vertices.mean(0)[None])[0] for s in subs])
     origin = np.array([*np.floor(cents[:, :2].min(0)), 0.0])
-    poses, _, coarse = _region_poses(subs, origin, config, resolve_device(device or config.device))
+    poses, _, coarse, _ = _region_poses(subs, origin, config, resolve_device(device or config.device))
     return map_poses(poses, origin, subs), coarse
 
 
 def _region_poses(
     subs: list[SubmapInput], origin: np.ndarray, config: FusionConfig, dev: torch.device
-) -> tuple[PoseSet, torch.Tensor, dict[str, Any]]:
+) -> tuple[PoseSet, torch.Tensor, dict[str, Any], dict[str, Drift]]:
     """The region's poses (region frame: map frame shifted by ``-origin``): each session's odometry
     chain placed on its GPS poses (fixed submaps dominate), then moved rigidly onto the other sessions
     (``fusion.coarse``), then every submap registered onto the others (``fusion.register``); the GPS anchors
-    of the prior; the coarse registration's per-session figures (+ ``"fine"``: the fine registration's)."""
+    of the prior; the coarse registration's per-session figures (+ ``"fine"``: the fine registration's); the
+    drift corrections the fine registration found (``fine_drift``; the poses are the corrected submaps')."""
     to_region = np.eye(4)
     to_region[:3, 3] = -origin
     init = [to_region @ s.pose_init.matrix() for s in subs]
@@ -187,12 +191,14 @@ def _region_poses(
     if config.coarse_register:
         registered = coarse_register(subs, start, config, dev)
         start, coarse = registered.poses, registered.metrics
+    drifts: dict[str, Drift] = {}
     if config.fine_register:
         fine = fine_register(subs, start, gps, config, dev)
         start = fine.poses
         coarse = coarse | {"fine": fine.metrics}
-    poses = _pose_set(subs, start, dev)
-    return poses, gps, coarse
+        drifts = {s.id: d for s, d in zip(subs, fine.drifts, strict=False) if s.free and not d.is_identity()}
+    poses = _pose_set([corrected_input(s, drifts.get(s.id)) for s in subs], start, dev)
+    return poses, gps, coarse, drifts
 
 
 def _pose_set(subs: list[SubmapInput], mats: list[np.ndarray], dev: torch.device) -> PoseSet:
@@ -212,7 +218,8 @@ def _polish(subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: 
         current = [m for m in poses().cpu().numpy()]
     radii = np.geomspace(max(config.fine_polish_max_m, config.fine_min_dist_m), config.fine_min_dist_m,
                          config.fine_polish_rounds)
-    fine = fine_register(subs, current, gps, config, dev, radii)
+    # the drift stays as the first registration found it (``subs`` are already corrected)
+    fine = fine_register(subs, current, gps, replace(config, fine_drift=False), dev, radii)
     return _pose_set(subs, fine.poses, dev), fine.metrics
 
 

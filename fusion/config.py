@@ -149,6 +149,13 @@ class FusionConfig:
     # runs). Judged by the residuals after a rigid re-fit of each pair instead, camera 0 lost 0.055: a monocular
     # pair's small overlap fits rigidly (reverted). README, "A session's own overlaps by default"
     fine_own_overlap: bool = True
+    # each free submap's monocular drift (one scale, a slow yaw and pitch bend about its local origin,
+    # fusion.drift) estimated with its pose in every round of the fine registration, then held: the field
+    # alignment, the reconstruction and the service's later jobs see the corrected submap. Gauss-Newton
+    # solver only. Priors: scale σ and bend-rate σ (wide against a monocular mapper's ~1 % / ~0.02°/m)
+    fine_drift: bool = False
+    fine_drift_scale_sigma: float = 0.02
+    fine_drift_bend_deg_per_m: float = 0.04
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
@@ -361,6 +368,10 @@ class FusionConfig:
         if self.fine_same_session and self.fine_own_overlap:
             raise ValueError("fine_same_session and fine_own_overlap both match a session's own submaps: "
                              "set fine_own_overlap=false to use fine_same_session")
+        if self.fine_drift and self.fine_solver != "gn":
+            raise ValueError("fine_drift needs fine_solver=gn (the drift is solved with the normal equations)")
+        if self.fine_drift and not (self.fine_drift_scale_sigma > 0 and self.fine_drift_bend_deg_per_m > 0):
+            raise ValueError("fine_drift_scale_sigma and fine_drift_bend_deg_per_m must be > 0")
         if not 0 <= self.realign_iterations_fraction <= 1:
             raise ValueError(f"realign_iterations_fraction must be in [0, 1], got {self.realign_iterations_fraction}")
         if self.align_iterations_per_tile < 0:

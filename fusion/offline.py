@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fusion import geo, tiles
+from fusion.drift import Drift, corrected_input
 from fusion.errors import FusionError, FusionLibraryError
 from fusion.meshio import read_submap_ply, write_fused_ply
 from fusion.regions import regions
@@ -113,6 +114,7 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
                on_tile: Callable[[tuple[int, int], FusionResult], None] | None = None,
                skipped: dict[str, str] | None = None,
                align_metrics: list[dict[str, Any]] | None = None, grow: bool = False,
+               drifts: dict[str, Drift] | None = None,
                ) -> dict[tuple[int, int], FusionResult]:
     """Fuse ``tile_keys``: align each region, then reconstruct each tile with the poses fixed.
 
@@ -129,16 +131,20 @@ def fuse_tiles(submaps: list[LoadedSubmap], tile_keys: list[tuple[int, int]], co
     not depend on it. ``fixed_poses``: if given, every submap is held at that pose and alignment is
     skipped (e.g. true poses for an oracle). A tile (or region) the fusion finds no data in (its
     submaps only graze it through their GPS uncertainty) is recorded in ``skipped`` (else raised).
-    ``align_metrics``: if given, each region's alignment metrics are appended to it."""
+    ``align_metrics``: if given, each region's alignment metrics are appended to it. ``drifts`` (submap id →
+    ``fusion.drift.Drift``, ``fine_drift``): updated in place like ``refined``; each submap is reconstructed
+    corrected by its entry."""
     refined = {} if refined is None else refined
+    drifts = {} if drifts is None else drifts
     keys = sorted({(int(i), int(j)) for i, j in tile_keys})
     fields: dict[tuple[int, int], dict[str, Any]] = {}
     if fixed_poses is None:
-        _align_regions(submaps, keys, config, tile_size, progress, refined, skipped, align_metrics, fields)
+        _align_regions(submaps, keys, config, tile_size, progress, refined, skipped, align_metrics, fields, drifts)
     poses = fixed_poses if fixed_poses is not None else refined
     if grow:
         keys = sorted(set(keys).union(*members(submaps, poses, tile_size, config).values()))
-    return reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped, warm=fields)
+    return reconstruct_tiles(submaps, keys, config, tile_size, progress, poses, on_tile, skipped, warm=fields,
+                             drifts=drifts if fixed_poses is None else None)
 
 
 def members(submaps: list[LoadedSubmap], poses: dict[str, Pose], tile_size: float,
@@ -176,9 +182,9 @@ def _skip_or_raise(skipped: dict[str, str] | None, what: str, exc: FusionError) 
 def _align_regions(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], config: FusionConfig,
                    tile_size: float, progress: ProgressCallback | None, refined: dict[str, Pose],
                    skipped: dict[str, str] | None, align_metrics: list[dict[str, Any]] | None,
-                   fields: dict[tuple[int, int], dict[str, Any]]) -> None:
+                   fields: dict[tuple[int, int], dict[str, Any]], drifts: dict[str, Drift]) -> None:
     """Align every region of ``keys`` (all its submaps free); ``refined`` gets the aligned poses,
-    ``fields`` each tile's field state (the reconstruction's warm start)."""
+    ``fields`` each tile's field state (the reconstruction's warm start), ``drifts`` the drift corrections."""
     from fusion.align import align_region
 
     by_id = {s.input.id: s for s in submaps}
@@ -195,6 +201,9 @@ def _align_regions(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], con
             continue
         refined.update(aligned.poses)
         fields.update(aligned.fields)
+        for sid in region.submaps:  # a re-alignment finds each submap's drift anew
+            drifts.pop(sid, None)
+        drifts.update(aligned.drifts)
         if align_metrics is not None:
             align_metrics.append(aligned.metrics | {"tiles": [list(t) for t in region.tiles]})
 
@@ -205,6 +214,7 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
                        skipped: dict[str, str] | None,
                        previous: dict[tuple[int, int], FusionResult] | None = None,
                        warm: dict[tuple[int, int], dict[str, Any]] | None = None,
+                       drifts: dict[str, Drift] | None = None,
                        ) -> dict[tuple[int, int], FusionResult]:
     """Each tile in order with every submap of it (:func:`members`) held at ``poses`` (else its GPS pose); neighbours
     reconstructed earlier (here, else in ``previous``: the tiles a re-fusion leaves as they are) pin the
@@ -212,9 +222,10 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
 
     ``previous``: the map before a session was added (its submaps held where they were, the new ones
     aligned against it): a tile of it re-fused here starts from its own field instead, with
-    ``refusion_warm_fraction`` of the steps."""
+    ``refusion_warm_fraction`` of the steps. ``drifts``: each submap's drift correction (``fusion.drift``), if any."""
     from fusion.reconstruct import reconstruct_tile
 
+    drifts = drifts or {}
     results: dict[tuple[int, int], FusionResult] = {}
     before = previous or {}
 
@@ -224,8 +235,8 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
 
     reach = members(submaps, poses, tile_size, config)
     for n, key in enumerate(keys):
-        inputs = [replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=False)
-                  for s in submaps if key in reach[s.input.id]]
+        inputs = [corrected_input(replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=False),
+                                  drifts.get(s.input.id)) for s in submaps if key in reach[s.input.id]]
         pins = tiles.border_pins(*key, border_of)
         label = f"tile {key[0]}_{key[1]} ({n + 1}/{len(keys)})"
         last = before.get(key)

@@ -51,7 +51,7 @@ import scipy.sparse.linalg
 import torch
 from scipy.spatial import cKDTree
 
-from fusion import se3
+from fusion import drift, se3
 from fusion.config import FusionConfig
 from fusion.losses import gps_prior_loss, odometry_loss, pose_residual
 from fusion.poses import PoseSet
@@ -64,11 +64,13 @@ UPRIGHT_NZ = 0.7  # a face whose local normal is within ~45° of +z is ground-li
 
 @dataclass
 class FineResult:
-    """``poses``: the registered poses (4, 4) per submap (region frame); ``metrics``: per round the match
-    count and median |residual| (m), and the RMS movement of the free submaps' centroids (m)."""
+    """``poses``: the registered poses (4, 4) per submap (region frame), of the submaps corrected by
+    ``drifts`` (``fusion.drift``; identity unless ``fine_drift``); ``metrics``: per round the match count and
+    median |residual| (m), and the RMS movement of the free submaps' centroids (m)."""
 
     poses: list[np.ndarray]
     metrics: dict[str, object] = field(default_factory=dict)
+    drifts: list[drift.Drift] = field(default_factory=list)
 
 
 AZIMUTH_BINS = 6  # non-ground normals binned by horizontal direction, modulo 180° (30° bins)
@@ -176,6 +178,9 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     if radii is None:
         radii = match_radii(config, float(np.median([s.gps_sigma.trans_m for s in subs if s.free])))
     current = torch.tensor(np.stack(start), device=dev)  # the Gauss-Newton path's poses (region frame)
+    correct = gauss_newton and config.fine_drift  # each free submap's drift (fusion.drift) with its pose
+    axes = np.array([drift.ahead_axis(s.mesh.vertices) for s in subs])
+    bends = np.zeros((n_subs, drift.PARAMS))
     local_cents = torch.tensor(np.stack(cents), device=dev)
     free_t = torch.tensor([s.free for s in subs], device=dev)
     colour = torch.tensor(_chain_colours(subs), device=dev)
@@ -221,7 +226,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
         w = torch.tensor(w_np, device=dev)
 
         def residual(t: torch.Tensor, s_idx: torch.Tensor = s_idx, d_idx: torch.Tensor = d_idx,
-                     n_pair: torch.Tensor = n_pair) -> torch.Tensor:
+                     n_pair: torch.Tensor = n_pair, pts_t: torch.Tensor = pts_t) -> torch.Tensor:
             """Point-to-plane residual (m) of every match at poses ``t``."""
             a = transform(t, own_t[s_idx], pts_t[s_idx])
             return ((a - transform(t, own_t[d_idx], pts_t[d_idx])) * n_pair).sum(-1)
@@ -229,8 +234,15 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
         if gauss_newton:
             match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
             current, steps = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour, config.fine_steps)
+            if correct:  # the drift given the poses, then the poses given the drift, on the same matches
+                bends = _drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config)
+                pts_t = torch.tensor(_corrected(pts, own, bends, axes), device=dev)
+                match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
+                current, more = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour,
+                                              config.fine_steps)
+                steps += more
             with torch.no_grad():
-                res = residual(current)
+                res = match.residual(current)
             rounds.append({"radius_m": float(radius), "matches": int(len(src)), "steps": steps, "gain": gain,
                            "median_residual_m": float(res.abs().median())})
             continue
@@ -254,7 +266,74 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     moved = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(final, cents, strict=True)]) - centroids
     free = np.array([s.free for s in subs])
     rms = float(np.sqrt((moved[free] ** 2).sum(1).mean())) if free.any() else 0.0
-    return FineResult(list(final), {"rounds": rounds, "moved_rms_m": rms})
+    drifts = [drift.Drift(axis=(float(a[0]), float(a[1]))).with_params(b) for a, b in zip(axes, bends, strict=True)]
+    metrics = {"rounds": rounds, "moved_rms_m": rms}
+    if correct:
+        metrics["drift_rms"] = {"scale": float(np.sqrt(np.mean(np.expm1(bends[free, 0]) ** 2))) if free.any() else 0.0,
+                                "bend_deg_per_m": float(np.degrees(np.sqrt(np.mean(bends[free, 1:] ** 2))))
+                                if free.any() else 0.0}
+    return FineResult(list(final), metrics, drifts)
+
+
+def _corrected(raw: np.ndarray, owner: np.ndarray, bends: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """The samples ``raw`` (local frames, as uploaded) under their submap's drift correction (same order)."""
+    out = raw.copy()
+    for k in np.unique(owner):
+        sel = owner == k
+        out[sel] = drift.deform(raw[sel], bends[k], axes[k])
+    return out
+
+
+def _drift_step(poses: torch.Tensor, match: _Matches, samples: tuple[np.ndarray, np.ndarray], bends: np.ndarray,
+                raw: np.ndarray, axes: np.ndarray, local_cents: torch.Tensor, free: torch.Tensor,
+                config: FusionConfig) -> np.ndarray:
+    """One Gauss-Newton step of every free submap's drift parameters (``fusion.drift``; (M, 3)) on the round's
+    matches, the other submaps held where they are.
+
+    Each submap's step solves its drift jointly with a rigid correction of its own (9 unknowns, the IRLS
+    weights of the matches at the current residuals) and keeps the drift part: the drift that fits best
+    whatever rigid move goes with it, so a residual a rigid move explains (an offset the odometry holds
+    against) is not read as scale. The priors ``fine_drift_scale_sigma`` and ``fine_drift_bend_deg_per_m``
+    hold what the matches leave open; a step is kept within 3 σ of them.
+
+    ``raw``: every sample (local frame, as uploaded), ``samples`` the matches' source and target rows of it
+    (``match.p_src`` / ``p_dst`` are their corrected copies); normals are held (the bend turns them by tenths
+    of a degree)."""
+    m = len(poses)
+    sigma_p = np.array([config.fine_drift_scale_sigma, *[math.radians(config.fine_drift_bend_deg_per_m)] * 2])
+    with torch.no_grad():
+        cents = ((poses[:, :3, :3] @ local_cents[:, :, None])[:, :, 0] + poses[:, :3, 3]).cpu().numpy()
+        q_s = transform(poses, match.src, match.p_src).cpu().numpy()
+        q_d = transform(poses, match.dst, match.p_dst).cpu().numpy()
+    normal = match.normal.cpu().numpy()
+    r = ((q_s - q_d) * normal).sum(-1)
+    weight = match.w.cpu().numpy() / (match.sigma ** 2 + r * r)
+    rot = poses[:, :3, :3].cpu().numpy()
+    src, dst = match.src.cpu().numpy(), match.dst.cpu().numpy()
+    h = np.zeros((m, 9, 9))
+    g = np.zeros((m, 9))
+    for sign, who, q, idx in ((1.0, src, q_s, samples[0]), (-1.0, dst, q_d, samples[1])):
+        jac = np.empty((len(who), 9))
+        jac[:, :3] = normal
+        jac[:, 3:6] = np.cross(q - cents[who], normal)
+        for k in np.unique(who):
+            sel = who == k
+            dd = drift.jacobian(raw[idx[sel]], bends[k], axes[k])  # (n, 3, 3) local
+            jac[sel, 6:] = np.einsum("ni,ij,njk->nk", normal[sel], rot[k], dd)
+        jac *= sign
+        np.add.at(h, who, weight[:, None, None] * jac[:, :, None] * jac[:, None, :])
+        np.add.at(g, who, (weight * r)[:, None] * jac)
+    out = bends.copy()
+    for k in np.flatnonzero(free.cpu().numpy()):
+        if not h[k].any():
+            continue
+        hk, gk = h[k].copy(), g[k].copy()
+        hk[6:, 6:] += np.diag(1.0 / sigma_p ** 2)
+        gk[6:] += bends[k] / sigma_p ** 2
+        hk += np.eye(9) * 1e-9 * max(np.trace(hk), 1.0)
+        step = np.linalg.solve(hk, -gk)[6:]
+        out[k] = np.clip(bends[k] + step, -3 * sigma_p, 3 * sigma_p)
+    return out
 
 
 def _gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sigma: float, config: FusionConfig,

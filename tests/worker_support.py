@@ -134,14 +134,22 @@ class FakeFusion(_FakeStage):
 
 
 class FakeAlign(_FakeStage):
-    """Stands in for the region alignment (``worker.runner._align``)."""
+    """Stands in for the region alignment (``worker.runner._align``); every free submap gets ``drift`` (a
+    ``fusion.drift.Drift``), if given."""
 
-    def __call__(self, inputs: Any, keeper: Any, frozen: dict[Any, bytes]) -> tuple[dict[str, Pose], dict[str, Any], dict]:
+    def __init__(self, shift: float = 0.0, error: BaseException | None = None, drift: Any = None) -> None:
+        super().__init__(shift, error)
+        self.drift = drift
+
+    def __call__(self, inputs: Any, keeper: Any, frozen: dict[Any, bytes]) -> tuple[dict[str, Pose], dict[str, Any],
+                                                                                   dict, dict]:
         self.frozen, self.config = frozen, inputs.config
         registration_only = inputs.config.align_iterations_per_tile == 0 and not frozen  # as align_region
         trained = {(t.i, t.j): f"field of {t.i},{t.j}".encode() for t in inputs.tiles
                    if (t.i, t.j) not in frozen and not registration_only}
-        return self._moved(inputs.tiles, inputs.submaps), {"losses": {"total": 0.1}}, trained
+        poses = self._moved(inputs.tiles, inputs.submaps)
+        drifts = {sid: self.drift for sid in poses} if self.drift is not None else {}
+        return poses, {"losses": {"total": 0.1}}, trained, drifts
 
 
 def never_realign(monkeypatch: Any) -> None:

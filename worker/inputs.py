@@ -20,6 +20,7 @@ from sqlalchemy import select, tuple_
 from sqlalchemy.orm import Session
 
 from fusion.config import FusionConfig
+from fusion.drift import Drift, corrected_input
 from fusion.meshio import MeshLimits, read_submap_ply
 from fusion.tiles import border_pins
 from fusion.types import Pose, Sigma, SubmapInput, TileSpec, WarmKind, quat_to_matrix, rotation_angle_deg
@@ -81,7 +82,9 @@ def fingerprint(tile: TileSpec, config: FusionConfig, submaps: list[tuple[Submap
     doc = {
         "tile": [tile.i, tile.j, tile.size_m],
         "config": config.to_dict(),
-        "submaps": sorted([s.id, s.mesh_sha256, pose.to_json(), free] for s, pose, free in submaps),
+        # a held submap's drift correction shapes it too (listed only where there is one: the fingerprints of
+        # tiles fused before it existed are unchanged)
+        "submaps": sorted([s.id, s.mesh_sha256, pose.to_json(), free, *_held_drift(s, free)] for s, pose, free in submaps),
     }
     if warm_sha256 is not None:
         doc["warm"] = warm_sha256
@@ -204,13 +207,20 @@ def plan_alignment(db: Session, settings: Settings, keys: list[tuple[int, int]],
                         config.for_realignment() if realign else config, rows, fields)
 
 
+def _held_drift(submap: Submap, free: bool) -> list[dict[str, Any]]:
+    """The stored drift correction a held submap is fused with (``fusion.drift``), as a 0- or 1-item list: a
+    free submap's is found anew by its alignment."""
+    return [submap.drift_refined] if submap.drift_refined and not free else []
+
+
 def load_submaps(
     blobs: BlobStore, settings: Settings, rows: list[tuple[Submap, Pose, bool]]
 ) -> list[SubmapInput]:
-    """The fusion inputs of ``rows``: mesh blobs read and validated, poses and sigmas."""
+    """The fusion inputs of ``rows``: mesh blobs read and validated, poses and sigmas; a held submap
+    corrected by its stored drift (the refined pose is the corrected submap's)."""
     limits = MeshLimits(max_faces=settings.max_faces, max_coordinate_m=settings.max_coordinate_m)
     return [
-        SubmapInput(
+        corrected_input(SubmapInput(
             id=s.id,
             session_id=s.session_id,
             seq=s.seq,
@@ -221,7 +231,7 @@ def load_submaps(
             odometry_sigma=Sigma(s.odometry_sigma_trans_m, s.odometry_sigma_rot_deg),
             free=free,
             pose_gps=Pose.from_json(s.pose_gps),
-        )
+        ), next((Drift.from_json(d) for d in _held_drift(s, free)), None))
         for s, pose, free in rows
     ]
 

@@ -17,6 +17,7 @@ import numpy as np
 from sqlalchemy import func, literal, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from fusion.drift import Drift
 from fusion.meshio import write_fused_ply, write_glb
 from fusion.types import FusionResult, Pose
 from service.store import tiles
@@ -205,11 +206,12 @@ def commit_alignment(
     surface: dict[str, list[tuple[int, int]]] | None = None,
     *,
     incremental: bool = False,
+    drifts: dict[str, Drift] | None = None,
 ) -> tuple[Outcome, list[str]]:
     """ONE transaction: the refined pose of every aligned submap (written once: only where none was; a
     joint re-alignment, ``claim.realign``, rewrites them) with the tiles its surface reaches there
     (``surface``, by submap id; ``Submap.surface_tiles``) and whether it was aligned against a held map
-    (``incremental``), a reconstruct job for each of the region's tiles (each tile handed from this lease to
+    (``incremental``) and its drift correction (``drifts``, by submap id; none: NULL), a reconstruct job for each of the region's tiles (each tile handed from this lease to
     its job, ``queued``, with the blob of the field trained there, if any, which replaces the tile's
     reconstruction field as its warm start), the align job ``succeeded``. Returns the outcome and the new
     jobs to enqueue."""
@@ -219,7 +221,9 @@ def commit_alignment(
             db.execute(
                 update(Submap)
                 .where(Submap.id == submap_id, *(() if claim.realign else (Submap.pose_refined.is_(None),)))
-                .values(pose_refined=pose.to_json(), refined_at=func.coalesce(Submap.refined_at, literal(now, UTCDateTime())),
+                .values(pose_refined=pose.to_json(),
+                        drift_refined=drifts[submap_id].to_json() if drifts and submap_id in drifts else None,
+                        refined_at=func.coalesce(Submap.refined_at, literal(now, UTCDateTime())),
                         aligned_incrementally=incremental,
                         surface_tiles=[list(t) for t in surface[submap_id]] if surface and submap_id in surface else None)
             )

@@ -22,6 +22,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from fusion.drift import Drift, corrected_input
 from fusion.errors import FusionError, FusionLibraryError
 from fusion.tiles import surface_tiles
 from fusion.types import FusedMesh, FusionResult, Pose
@@ -104,10 +105,11 @@ def _fuse(inputs: TileInputs, keeper: LeaseKeeper) -> FusionResult:
 
 def _align(
     inputs: RegionInputs, keeper: LeaseKeeper, frozen: dict[tuple[int, int], bytes]
-) -> tuple[dict[str, Pose], dict[str, Any], dict[tuple[int, int], bytes]]:
+) -> tuple[dict[str, Pose], dict[str, Any], dict[tuple[int, int], bytes], dict[str, Drift]]:
     """Align the region's free submaps against the rest, tracking them against the ``frozen`` fields of
     earlier alignments (serialised state dicts) where a tile has one. Returns the refined poses (map
-    frame), metrics, and the fields trained here (serialised), by tile."""
+    frame), metrics, the fields trained here (serialised), by tile, and the drift corrections found
+    (``fine_drift``), by submap."""
     from fusion.align import align_region
     from fusion.field import pack_state, unpack_state
 
@@ -115,7 +117,7 @@ def _align(
     states = {key: unpack_state(data) for key, data in frozen.items()}
     result = align_region(inputs.submaps, inputs.tiles, inputs.config, progress=keeper, frozen=states or None)
     trained = {key: pack_state(state) for key, state in result.fields.items() if key not in frozen}
-    return result.poses, result.metrics, trained
+    return result.poses, result.metrics, trained, result.drifts
 
 
 def _run_alignment(
@@ -124,6 +126,7 @@ def _run_alignment(
     with factory() as db:
         inputs = plan_alignment(db, settings, claim.tiles, claim.realign)
     poses: dict[str, Pose] = {}
+    drifts: dict[str, Drift] = {}
     surface: dict[str, list[tuple[int, int]]] = {}
     fields: dict[tuple[int, int], str] = {}
     metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free), "realign": claim.realign}
@@ -132,15 +135,16 @@ def _run_alignment(
         log.info("aligning region %s: %d submaps, %d free, %d tiles with a field, job %s", claim.tiles,
                  len(inputs.rows), len(inputs.free), len(inputs.fields), claim.job_id)
         frozen = {key: blobs.get(sha) for key, sha in inputs.fields.items()}
-        poses, align_metrics, trained = _align(inputs, keeper, frozen)
+        poses, align_metrics, trained, drifts = _align(inputs, keeper, frozen)
         metrics.update(align_metrics)
+        posed = [corrected_input(s, drifts.get(s.id)) for s in inputs.submaps if s.id in poses]
         surface = {s.id: surface_tiles(s.mesh.vertices, s.mesh.faces, poses[s.id], settings.tile_size,
-                                       inputs.config.refusion_band_m) for s in inputs.submaps if s.id in poses}
+                                       inputs.config.refusion_band_m) for s in posed}
         fields = {key: blobs.put(data) for key, data in trained.items()}  # durable before rows name them
     if keeper.lost.is_set():
         raise LeaseLost(f"lease of job {claim.job_id} lost")
     outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics, surface,
-                                             incremental=inputs.held > 0 and not claim.realign)
+                                             incremental=inputs.held > 0 and not claim.realign, drifts=drifts)
     for job_id in jobs:
         enqueue(job_id, settings, JobKind.reconstruct.value)
     return outcome

@@ -33,6 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from fusion.config import FusionConfig
+from fusion.drift import Drift, corrected_input
 from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.offline import LoadedSubmap, fuse_tiles, reconstruct_tiles
@@ -215,8 +216,9 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]], count: int = 1)
     skipped: dict[str, str] = {}
     t0 = time.perf_counter()
     before = align_region([replace(s.input, pose_init=s.pose_gps, free=True) for s in present], specs, cfg)
+    drifts = dict(before.drifts)
     fused = reconstruct_tiles(present, keys, cfg, ctx.tile_size, None, before.poses, None, skipped,
-                              warm=before.fields)
+                              warm=before.fields, drifts=drifts)
     before_s = time.perf_counter() - t0
     poses, aligned_fields = dict(before.poses), dict(before.fields)  # the tiles' alignment fields, as stored
     additions: list[dict[str, Any]] = []
@@ -227,25 +229,27 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]], count: int = 1)
         sessions = {s.input.session_id for s in present} | {sid}
         if needs_realignment(len(sessions), len(incremental | {sid}), cfg.realign_share):
             present, incremental = present + new, set()
-            fused, trained, figures = _realign(ctx, keys, present, poses, fused, skipped)
+            fused, trained, figures = _realign(ctx, keys, present, poses, fused, skipped, drifts)
             aligned_fields |= trained
             additions.append({"session": sid, "submaps": len(new), "add_s": time.perf_counter() - t0} | figures)
             continue
         incremental.add(sid)
-        held = [replace(s.input, pose_init=poses[s.input.id], free=False) for s in present]
+        held = [corrected_input(replace(s.input, pose_init=poses[s.input.id], free=False), drifts.get(s.input.id))
+                for s in present]
         arriving = [replace(s.input, pose_init=s.pose_gps, free=True) for s in new]
         frozen = dict(aligned_fields)
         if cfg.align_track_reconstruction:
             frozen |= {k: r.field_state for k, r in fused.items() if r.field_state is not None}
         added = align_region(held + arriving, specs, cfg, frozen=frozen)
         poses |= added.poses
+        drifts |= added.drifts
         aligned_fields |= {k: f for k, f in added.fields.items() if k not in frozen}  # tiles new to the map
         present = present + new
         touched = sorted({t for s in new for t in surface_tiles(s.input.mesh.vertices, s.input.mesh.faces,
                                                                 poses[s.input.id], ctx.tile_size, cfg.refusion_band_m)
                           if t in set(keys)})
         again = reconstruct_tiles(present, touched, cfg, ctx.tile_size, None, poses, None, skipped,
-                                  previous=fused, warm=aligned_fields)
+                                  previous=fused, warm=aligned_fields, drifts=drifts)
         fused = fused | again
         additions.append({"session": sid, "submaps": len(new), "add_s": time.perf_counter() - t0, "realigned": False,
                           "align_s": added.metrics["duration_s"], "tiles_refused": len(again),
@@ -262,13 +266,13 @@ def _add_session(ctx: BenchContext, keys: list[tuple[int, int]], count: int = 1)
 
 
 def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[LoadedSubmap], poses: dict[str, Pose],
-             before: dict[tuple[int, int], FusionResult], skipped: dict[str, str]
+             before: dict[tuple[int, int], FusionResult], skipped: dict[str, str], drifts: dict[str, Drift]
              ) -> tuple[dict[tuple[int, int], FusionResult], dict[tuple[int, int], Any], dict[str, Any]]:
     """An addition that re-aligns the region jointly (``FusionConfig.realign_share``, as the service does):
     every submap free from its refined pose (the arriving ones from GPS), the GPS prior as ever, no frozen
     field; every tile reconstructed from the field the alignment trained there, or where it trained none
     (``realign_iterations_fraction`` 0: registration only) from its own last reconstruction (``before``).
-    Updates ``poses``; returns the tiles' results, the alignment's fields and the addition's figures."""
+    Updates ``poses`` and ``drifts``; returns the tiles' results, the alignment's fields and the addition's figures."""
     from fusion.align import align_region
 
     cfg = ctx.config
@@ -276,8 +280,10 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     result = align_region([replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=True) for s in submaps],
                           specs, cfg.for_realignment())
     poses |= result.poses
+    drifts.clear()
+    drifts |= result.drifts
     fused = reconstruct_tiles(submaps, keys, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields,
-                              previous=None if result.fields else before)
+                              previous=None if result.fields else before, drifts=drifts)
     return fused, dict(result.fields), {
         "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused),
         "refused": [list(k) for k in sorted(fused)], "alignment": result.metrics} | _recon_times(fused)

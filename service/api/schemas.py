@@ -145,11 +145,27 @@ class SubmapPublic(BaseModel):
         description="Map-frame pose refined by fusion; null until then. A joint re-alignment of its region "
         "(a job with `realign` true) may rewrite it later")
     refined_at: datetime | None = Field(description="When the submap was first aligned (its first `pose_refined`)")
+    drift_refined: DriftCorrection | None = Field(
+        default=None,
+        description="The monocular drift correction of its local frame found with `pose_refined` (only with the "
+        "fusion option `fine_drift`; null: none, the mesh is used as uploaded). The fused map holds the submap "
+        "at `pose_refined` · D(p)")
     tiles: list[TileIndex]
     home_tile: TileIndex
     sha256: str = Field(description="sha256 of the mesh bytes")
     face_count: int
     created_at: datetime
+
+
+class DriftCorrection(BaseModel):
+    """D(p) in the submap's local frame (metres), about its origin: with `axis` a the horizontal direction ahead,
+    b = z × a and x = p·a, p turned about z by `bend_yaw_rad_per_m`·x/2 and about b by `bend_pitch_rad_per_m`·x/2,
+    then scaled by `scale`."""
+
+    scale: float
+    bend_yaw_rad_per_m: float
+    bend_pitch_rad_per_m: float
+    axis: Annotated[list[float], Field(min_length=2, max_length=2, description="[x, y], unit, local frame")]
 
 
 class SessionPose(BaseModel):

@@ -156,6 +156,9 @@ class Submap(Base):
     odometry_sigma_rot_deg: Mapped[float] = mapped_column(Float)
     pose_refined: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     refined_at: Mapped[datetime | None] = mapped_column(default=None)
+    # the monocular drift correction of its local frame found with the refined pose (``fusion.drift``:
+    # ``{"scale", "bend_yaw_rad_per_m", "bend_pitch_rad_per_m", "axis"}``; written with the pose; NULL: none)
+    drift_refined: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     # the tiles its surface reaches at the refined pose, [[i, j], ...] (``fusion.tiles.surface_tiles`` with
     # ``refusion_band_m``; written with the pose): a tile is fused again for this submap only if it is here
     surface_tiles: Mapped[list[Any] | None] = mapped_column(default=None)

@@ -367,3 +367,52 @@ def test_a_submap_aligned_into_a_tile_its_gps_missed_joins_it(tmp_path: Any, mon
         tile, submaps = fusion.calls[-1]
         assert (tile.i, tile.j) == (1, 0) and [s.id for s in submaps] == [sid]
         assert env.get("/v1/tiles/1/0").json()["state"] == "fused"
+
+
+def test_the_drift_an_alignment_found_is_stored_with_the_pose_and_corrects_the_submap_in_its_tiles(
+    env: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``fine_drift``: the alignment's drift correction of each submap (``fusion.drift``) is written with its refined
+    pose, shown on ``GET /v1/submaps/{id}``, and the tile's reconstruction holds the corrected mesh; it is part of
+    the tile's inputs (fingerprint)."""
+    import math
+
+    import numpy as np
+
+    from fusion.drift import Drift
+    from fusion.meshio import MeshLimits, read_submap_ply
+    from service.store.models import Submap
+    from worker.inputs import plan_tile
+
+    monkeypatch.setattr(runner, "_align", FakeAlign(drift=Drift(math.log(1.02), 1e-4, -1e-4, (0.0, 1.0))))
+    monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
+    assert _run(env) is Outcome.succeeded
+    with env.db() as db:
+        row = db.query(Submap).one()
+        sid, stored, uploaded = row.id, row.drift_refined, row.mesh_sha256
+        env.job_id = db.get(Tile, (0, 0)).job_id
+        with_drift = plan_tile(db, env.settings, 0, 0).fingerprint
+        row.drift_refined = None
+        without = plan_tile(db, env.settings, 0, 0).fingerprint
+        db.rollback()
+    assert stored["scale"] == pytest.approx(1.02) and stored["axis"] == [0.0, 1.0]
+    assert with_drift != without
+    shown = env.get(f"/v1/submaps/{sid}").json()["drift_refined"]
+    assert shown["scale"] == pytest.approx(1.02) and shown["bend_yaw_rad_per_m"] == pytest.approx(1e-4)
+    assert _run(env) is Outcome.succeeded
+    held = fusion.calls[-1][1][0]
+    raw = read_submap_ply(env.app.state.blobs.get(uploaded), MeshLimits())
+    np.testing.assert_allclose(held.mesh.vertices, Drift.from_json(stored).apply(raw.vertices))
+    assert not np.allclose(held.mesh.vertices, raw.vertices)
+
+
+def test_a_submap_aligned_without_a_drift_correction_has_none(env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    from service.store.models import Submap
+
+    monkeypatch.setattr(runner, "_align", FakeAlign())
+    assert _run(env) is Outcome.succeeded
+    with env.db() as db:
+        row = db.query(Submap).one()
+        assert row.pose_refined is not None and row.drift_refined is None
+        sid = row.id
+    assert env.get(f"/v1/submaps/{sid}").json()["drift_refined"] is None

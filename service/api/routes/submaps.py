@@ -14,7 +14,7 @@ from service.api.auth import Principal
 from service.api.deps import BlobsDep, Reader, SessionDep, SettingsDep, Uploader
 from service.api.ingest import parse_meta, prepare
 from service.api.problems import BodyTooLargeError, ProblemError, found, problem_responses
-from service.api.schemas import Pose, SubmapCreated, SubmapPublic
+from service.api.schemas import DriftCorrection, Pose, SubmapCreated, SubmapPublic
 from service.settings import Settings
 from service.store.blobs import BlobStore
 from service.store.models import Submap
@@ -168,6 +168,7 @@ def get_submap(submap_id: str, db: SessionDep, _principal: Reader) -> SubmapPubl
         pose_gps=Pose.model_validate(row.pose_gps),
         pose_refined=Pose.model_validate(row.pose_refined) if row.pose_refined else None,
         refined_at=row.refined_at,
+        drift_refined=DriftCorrection.model_validate(row.drift_refined) if row.drift_refined else None,
         tiles=submap_tile_list(db, row.id),
         home_tile=[row.home_i, row.home_j],
         sha256=row.mesh_sha256,
