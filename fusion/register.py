@@ -234,7 +234,9 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
         if gauss_newton:
             match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
             current, steps = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour, config.fine_steps)
-            if correct:  # the drift given the poses, then the poses given the drift, on the same matches
+            # the drift given the poses, then the poses given the drift, on the same matches; not in the basin's
+            # extra rounds (wider than fine_max_dist_m), whose matches still include the wrong walls
+            if correct and not basin:
                 bends = _drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config)
                 pts_t = torch.tensor(_corrected(pts, own, bends, axes), device=dev)
                 match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)

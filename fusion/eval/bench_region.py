@@ -387,6 +387,7 @@ COMPONENTS: tuple[str, ...] = (
     "fine_own_overlap=false",  # ... a session's consecutive submaps not matched (trusted as far as they fit rigidly)
     "fine_own_overlap=false,fine_same_session=true",  # ... matched instead pooled with the others, unweighted
     "fine_own_overlap=false,fine_same_session=true,fine_same_session_ground=false",  # ... its upright surfaces only
+    "fine_drift=true",  # ... each submap's monocular scale and bend estimated with its pose (fusion.drift)
     "fine_noise_max_gain=1",  # ... the data's weight not raised where their residuals are tight
     "fine_polish_rounds=0",  # ... not run once more after the field alignment
     "fine_normal_balance=0",  # ... samples by area, not spread over the directions vertical faces face
