@@ -275,11 +275,13 @@ def fuse_directory(in_dir: str | Path, out_dir: str | Path, config: FusionConfig
 
     skipped: dict[str, str] = {}
     align: list[dict[str, Any]] = []
+    drifts: dict[str, Drift] = {}
     done = fuse_tiles(submaps, keys, config, tile_size, progress, refined, on_tile=write_tile, skipped=skipped,
-                      align_metrics=align, grow=True)
+                      align_metrics=align, grow=True, drifts=drifts)
     keys = sorted(set(keys) | set(done))  # with the tiles only an aligned surface reaches
     poses = [{"session_id": s.input.session_id, "seq": s.input.seq, "id": s.input.id, "pose_gps": s.pose_gps.to_json(),
-              "pose_refined": refined[s.input.id].to_json() if s.input.id in refined else None} for s in submaps]
+              "pose_refined": refined[s.input.id].to_json() if s.input.id in refined else None,
+              "drift_refined": drifts[s.input.id].to_json() if s.input.id in drifts else None} for s in submaps]
     poses.sort(key=lambda p: (p["session_id"], p["seq"]))
     (out / "poses.json").write_text(json.dumps(poses, indent=1))
     summary = {"tiles": [list(k) for k in keys], "submaps": len(submaps), "tile_size_m": tile_size,

@@ -78,7 +78,11 @@ def cmd_fuse(args: argparse.Namespace) -> int:
             bar.set_postfix(loss=f"{ev.losses.get('total', float('nan')):.4f}")
 
     try:
-        summary = fuse_directory(args.dir, args.out, FusionConfig.preset(args.preset), tile_size=args.tile_size,
+        config = FusionConfig.preset(args.preset).with_overrides(args.set)
+    except ValueError as exc:
+        return _fail(f"--set {exc}")
+    try:
+        summary = fuse_directory(args.dir, args.out, config, tile_size=args.tile_size,
                                  origin=args.origin, progress=progress)
     finally:
         for bar in bars.values():
@@ -183,6 +187,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--preset", choices=PRESETS, default="cpu", help="fusion configuration (default cpu)")
     p.add_argument("--tile-size", type=float, default=64.0, help="tile size, metres (default 64)")
     p.add_argument("--origin", default=None, help="geodetic map origin 'lat,lon,alt' for geodetic GPS fixes")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a fusion configuration field (repeatable; fusion.config.FusionConfig), "
+                        "e.g. --set fine_drift=true for a monocular camera fleet")
     p.set_defaults(func=cmd_fuse)
 
     p = subparsers.add_parser("bench", help="simulate, fuse (3×3 tiles by default) and evaluate against the ground truth")

@@ -67,8 +67,9 @@ def test_fuse_directory_writes_tiles_and_poses(uploads: Path, tmp_path: Path) ->
     poses = json.loads((tmp_path / "poses.json").read_text())
     n_submaps = len(list(uploads.glob("*.ply")))
     assert len(poses) == n_submaps
-    assert {frozenset(p) for p in poses} == {frozenset({"session_id", "seq", "id", "pose_gps", "pose_refined"})}
-    assert all(p["pose_refined"] is not None for p in poses)
+    assert {frozenset(p) for p in poses} == {frozenset({"session_id", "seq", "id", "pose_gps", "pose_refined",
+                                                        "drift_refined"})}
+    assert all(p["pose_refined"] is not None and p["drift_refined"] is None for p in poses)  # fine_drift off
     assert any(not np.allclose(p["pose_gps"]["t"], p["pose_refined"]["t"]) for p in poses)
     assert events and events[-1].stage.startswith("tile ")
 
@@ -129,6 +130,37 @@ def test_region_aligned_then_tiles_reconstructed_with_fixed_poses(
     for _, refined in runs[1:]:
         for sid, pose in runs[0][1].items():
             assert np.allclose(refined[sid].t, pose.t, atol=1e-6) and np.allclose(refined[sid].q, pose.q, atol=1e-6)
+
+
+@pytest.mark.timeout(300)
+def test_with_fine_drift_each_tile_holds_the_corrected_submaps_and_poses_json_the_corrections(
+        multi_tile_uploads: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import fusion.reconstruct
+    from fusion.drift import Drift
+    from fusion.offline import fuse_directory, load_directory
+    from fusion.types import FusedMesh, FusionResult
+
+    meshes: dict = {}
+
+    def fake(submaps, tile, config, progress=None, border_pins=None, device=None, warm=None, warm_kind="alignment"):
+        meshes.update({s.id: s.mesh.vertices for s in submaps})
+        return FusionResult(FusedMesh.empty(), {}, {}, {}, {})
+
+    monkeypatch.setattr(fusion.reconstruct, "reconstruct_tile", fake)
+    fuse_directory(multi_tile_uploads, tmp_path, tiny_config().with_(align_iterations_per_tile=0, fine_drift=True),
+                   tile_size=TILE)
+    found = {p["id"]: p["drift_refined"] for p in json.loads((tmp_path / "poses.json").read_text())}
+    assert any(found.values())
+    for s in load_directory(multi_tile_uploads, TILE):
+        expected = Drift.from_json(found[s.input.id]).apply(s.input.mesh.vertices)
+        np.testing.assert_allclose(meshes[s.input.id], expected)
+
+
+def test_cli_refuses_an_unknown_setting_in_one_line(tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, "-m", "fusion.eval.cli", "fuse", str(tmp_path), "--out", str(tmp_path / "o"),
+                           "--set", "fine_drift_typo=true"], capture_output=True, text=True, check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "fine_drift_typo" in proc.stderr
 
 
 def test_fixed_poses_skip_alignment(multi_tile_uploads: Path, monkeypatch: pytest.MonkeyPatch) -> None:
