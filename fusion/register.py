@@ -181,7 +181,6 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     correct = gauss_newton and config.fine_drift  # each free submap's drift (fusion.drift) with its pose
     axes = np.array([drift.ahead_axis(s.mesh.vertices) for s in subs])
     bends = np.zeros((n_subs, drift.PARAMS))
-    room: np.ndarray | None = None  # per submap, the share of the drift prior its session leaves (_drift_room)
     local_cents = torch.tensor(np.stack(cents), device=dev)
     free_t = torch.tensor([s.free for s in subs], device=dev)
     colour = torch.tensor(_chain_colours(subs), device=dev)
@@ -238,9 +237,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             # the drift given the poses, then the poses given the drift, on the same matches; not in the basin's
             # extra rounds (wider than fine_max_dist_m), whose matches still include the wrong walls
             if correct and not basin:
-                if room is None:  # judged once, before any drift is corrected (corrected submaps fit better)
-                    room = _drift_room(r0, ground, np.arange(len(src)) >= n_other, of[own[src]], of, config)
-                bends = _drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config, room)
+                bends = _drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config)
                 pts_t = torch.tensor(_corrected(pts, own, bends, axes), device=dev)
                 match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
                 current, more = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour,
@@ -276,30 +273,8 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     if correct:
         metrics["drift_rms"] = {"scale": float(np.sqrt(np.mean(np.expm1(bends[free, 0]) ** 2))) if free.any() else 0.0,
                                 "bend_deg_per_m": float(np.degrees(np.sqrt(np.mean(bends[free, 1:] ** 2))))
-                                if free.any() else 0.0,
-                                "room_mean": float(room[free].mean()) if room is not None and free.any() else 1.0}
+                                if free.any() else 0.0}
     return FineResult(list(final), metrics, drifts)
-
-
-def _drift_room(residual: np.ndarray, ground: np.ndarray, own: np.ndarray, session: np.ndarray, of: np.ndarray,
-                config: FusionConfig) -> np.ndarray:
-    """Per submap (``of``: its session), the share of the drift prior (``fine_drift_*``) its session leaves it:
-    1 − how rigidly the session's own consecutive submaps fit each other, judged as :func:`_own_gains` does (its
-    own-overlap matches on walls and other upright surfaces, ``own`` & ~``ground``; ``session`` per match; their
-    residuals against the finest radius's Cauchy scale, :func:`_excess`). 1 without own overlaps.
-
-    Why: an exact or lidar session's submaps are rigid copies of one world (their walls fit each other to cm), so
-    there is no drift to find in them, and three free numbers per submap only soaked up the neighbours' pose
-    errors (exact bench: scale 0.2 % RMS found where there is none, poses 0.074 -> 0.110 m); a monocular session's
-    walls show its scale and bend (dm)."""
-    room = np.ones(len(of))
-    if not config.fine_own_overlap or config.fine_noise_max_gain <= 1:
-        return room
-    fine = config.fine_min_dist_m / 2
-    for k in np.unique(session[own]):
-        walls = own & ~ground & (session == k)
-        room[of == k] = 1.0 - _excess(residual[walls], fine, config)
-    return room
 
 
 def _corrected(raw: np.ndarray, owner: np.ndarray, bends: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -313,7 +288,7 @@ def _corrected(raw: np.ndarray, owner: np.ndarray, bends: np.ndarray, axes: np.n
 
 def _drift_step(poses: torch.Tensor, match: _Matches, samples: tuple[np.ndarray, np.ndarray], bends: np.ndarray,
                 raw: np.ndarray, axes: np.ndarray, local_cents: torch.Tensor, free: torch.Tensor,
-                config: FusionConfig, room: np.ndarray | None = None) -> np.ndarray:
+                config: FusionConfig) -> np.ndarray:
     """One Gauss-Newton step of every free submap's drift parameters (``fusion.drift``; (M, 3)) on the round's
     matches, the other submaps held where they are.
 
@@ -321,8 +296,7 @@ def _drift_step(poses: torch.Tensor, match: _Matches, samples: tuple[np.ndarray,
     weights of the matches at the current residuals) and keeps the drift part: the drift that fits best
     whatever rigid move goes with it, so a residual a rigid move explains (an offset the odometry holds
     against) is not read as scale. The priors ``fine_drift_scale_sigma`` and ``fine_drift_bend_deg_per_m``
-    hold what the matches leave open, each submap's narrowed to ``room`` (M,) of them (:func:`_drift_room`); a
-    step is kept within 3 σ of them.
+    hold what the matches leave open; a step is kept within 3 σ of them.
 
     ``raw``: every sample (local frame, as uploaded), ``samples`` the matches' source and target rows of it
     (``match.p_src`` / ``p_dst`` are their corrected copies); normals are held (the bend turns them by tenths
@@ -356,12 +330,11 @@ def _drift_step(poses: torch.Tensor, match: _Matches, samples: tuple[np.ndarray,
         if not h[k].any():
             continue
         hk, gk = h[k].copy(), g[k].copy()
-        prior = sigma_p * (1.0 if room is None else max(float(room[k]), 1e-3))
-        hk[6:, 6:] += np.diag(1.0 / prior ** 2)
-        gk[6:] += bends[k] / prior ** 2
+        hk[6:, 6:] += np.diag(1.0 / sigma_p ** 2)
+        gk[6:] += bends[k] / sigma_p ** 2
         hk += np.eye(9) * 1e-9 * max(np.trace(hk), 1.0)
         step = np.linalg.solve(hk, -gk)[6:]
-        out[k] = np.clip(bends[k] + step, -3 * prior, 3 * prior)
+        out[k] = np.clip(bends[k] + step, -3 * sigma_p, 3 * sigma_p)
     return out
 
 

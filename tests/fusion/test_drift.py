@@ -99,18 +99,3 @@ def test_an_exact_submap_keeps_no_drift() -> None:
 def test_the_drift_needs_the_gauss_newton_solver() -> None:
     with pytest.raises(ValueError, match="fine_drift needs fine_solver=gn"):
         tiny_config(fine_drift=True, fine_solver="lbfgs")
-
-
-def test_a_session_whose_own_walls_fit_rigidly_leaves_its_submaps_no_room_for_drift() -> None:
-    from fusion.register import _drift_room
-
-    rng = np.random.default_rng(0)
-    n = 400
-    session = np.repeat([0, 1], n)  # per match: session 0 exact (walls 1 cm apart), 1 monocular (dm)
-    residual = np.concatenate([rng.normal(0, 0.01, n), rng.normal(0, 0.15, n)])
-    ground = np.zeros(2 * n, bool)
-    own = np.ones(2 * n, bool)
-    of = np.array([0, 0, 1, 1, 2])  # submaps' sessions; session 2 has no own overlaps
-    room = _drift_room(residual, ground, own, session, of, tiny_config())
-    assert room[0] == room[1] < 0.1 and room[2] == room[3] > 0.9 and room[4] == 1.0
-    assert (_drift_room(residual, ground, own, session, of, tiny_config(fine_own_overlap=False)) == 1.0).all()
