@@ -156,8 +156,8 @@ class FusionConfig:
     # Whole pipeline, 3x3 bench, GPS 1.5 m, same run, off -> on (geo F / sem F / pose m; 2026-12-05,
     # twenty-second session): camera 0 0.772/0.347/0.482 -> 0.790/0.352/0.441, camera 1 0.921/0.411/0.288 ->
     # 0.920/0.408/0.243, camera 2 0.860/0.386/0.318 -> 0.889/0.398/0.326; exact 1 0.983/0.763/0.074 ->
-    # 0.981/0.746/0.110 (on exact submaps its three numbers fit the neighbours' pose errors instead: 0.2 %
-    # scale RMS where there is none). Off by default: a monocular fleet's deployment turns it on
+    # 0.981/0.746/0.110 (on exact submaps it finds 0.1-0.2 % scale RMS where there is none, and the poses
+    # suffer). Off by default: a monocular fleet's deployment turns it on
     # (FLEETMAP_FUSION_SET="fine_drift=true"). README, "A submap's monocular drift"
     fine_drift: bool = False
     fine_drift_scale_sigma: float = 0.02
