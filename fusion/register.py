@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 
 from fusion import drift, se3
 from fusion.config import FusionConfig
+from fusion.drift_fit import corrected_samples, drift_step
 from fusion.losses import gps_prior_loss, odometry_loss, pose_residual
 from fusion.poses import PoseSet
 from fusion.sampling import face_geometry, on_triangles, transform, uniform_barycentric
@@ -237,8 +238,8 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             # the drift given the poses, then the poses given the drift, on the same matches; not in the basin's
             # extra rounds (wider than fine_max_dist_m), whose matches still include the wrong walls
             if correct and not basin:
-                bends = _drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config)
-                pts_t = torch.tensor(_corrected(pts, own, bends, axes), device=dev)
+                bends = drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config)
+                pts_t = torch.tensor(corrected_samples(pts, own, bends, axes), device=dev)
                 match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
                 current, more = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour,
                                               config.fine_steps)
@@ -275,67 +276,6 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
                                 "bend_deg_per_m": float(np.degrees(np.sqrt(np.mean(bends[free, 1:] ** 2))))
                                 if free.any() else 0.0}
     return FineResult(list(final), metrics, drifts)
-
-
-def _corrected(raw: np.ndarray, owner: np.ndarray, bends: np.ndarray, axes: np.ndarray) -> np.ndarray:
-    """The samples ``raw`` (local frames, as uploaded) under their submap's drift correction (same order)."""
-    out = raw.copy()
-    for k in np.unique(owner):
-        sel = owner == k
-        out[sel] = drift.deform(raw[sel], bends[k], axes[k])
-    return out
-
-
-def _drift_step(poses: torch.Tensor, match: _Matches, samples: tuple[np.ndarray, np.ndarray], bends: np.ndarray,
-                raw: np.ndarray, axes: np.ndarray, local_cents: torch.Tensor, free: torch.Tensor,
-                config: FusionConfig) -> np.ndarray:
-    """One Gauss-Newton step of every free submap's drift parameters (``fusion.drift``; (M, 3)) on the round's
-    matches, the other submaps held where they are.
-
-    Each submap's step solves its drift jointly with a rigid correction of its own (9 unknowns, the IRLS
-    weights of the matches at the current residuals) and keeps the drift part: the drift that fits best
-    whatever rigid move goes with it, so a residual a rigid move explains (an offset the odometry holds
-    against) is not read as scale. The priors ``fine_drift_scale_sigma`` and ``fine_drift_bend_deg_per_m``
-    hold what the matches leave open; a step is kept within 3 σ of them.
-
-    ``raw``: every sample (local frame, as uploaded), ``samples`` the matches' source and target rows of it
-    (``match.p_src`` / ``p_dst`` are their corrected copies); normals are held (the bend turns them by tenths
-    of a degree)."""
-    m = len(poses)
-    sigma_p = np.array([config.fine_drift_scale_sigma, *[math.radians(config.fine_drift_bend_deg_per_m)] * 2])
-    with torch.no_grad():
-        cents = ((poses[:, :3, :3] @ local_cents[:, :, None])[:, :, 0] + poses[:, :3, 3]).cpu().numpy()
-        q_s = transform(poses, match.src, match.p_src).cpu().numpy()
-        q_d = transform(poses, match.dst, match.p_dst).cpu().numpy()
-    normal = match.normal.cpu().numpy()
-    r = ((q_s - q_d) * normal).sum(-1)
-    weight = match.w.cpu().numpy() / (match.sigma ** 2 + r * r)
-    rot = poses[:, :3, :3].cpu().numpy()
-    src, dst = match.src.cpu().numpy(), match.dst.cpu().numpy()
-    h = np.zeros((m, 9, 9))
-    g = np.zeros((m, 9))
-    for sign, who, q, idx in ((1.0, src, q_s, samples[0]), (-1.0, dst, q_d, samples[1])):
-        jac = np.empty((len(who), 9))
-        jac[:, :3] = normal
-        jac[:, 3:6] = np.cross(q - cents[who], normal)
-        for k in np.unique(who):
-            sel = who == k
-            dd = drift.jacobian(raw[idx[sel]], bends[k], axes[k])  # (n, 3, 3) local
-            jac[sel, 6:] = np.einsum("ni,ij,njk->nk", normal[sel], rot[k], dd)
-        jac *= sign
-        np.add.at(h, who, weight[:, None, None] * jac[:, :, None] * jac[:, None, :])
-        np.add.at(g, who, (weight * r)[:, None] * jac)
-    out = bends.copy()
-    for k in np.flatnonzero(free.cpu().numpy()):
-        if not h[k].any():
-            continue
-        hk, gk = h[k].copy(), g[k].copy()
-        hk[6:, 6:] += np.diag(1.0 / sigma_p ** 2)
-        gk[6:] += bends[k] / sigma_p ** 2
-        hk += np.eye(9) * 1e-9 * max(np.trace(hk), 1.0)
-        step = np.linalg.solve(hk, -gk)[6:]
-        out[k] = np.clip(bends[k] + step, -3 * sigma_p, 3 * sigma_p)
-    return out
 
 
 def _gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sigma: float, config: FusionConfig,
