@@ -341,6 +341,10 @@ class FusionConfig:
     extract_band: float = 0.75  # refine blocks with a corner |s| below this × block diagonal (or a sign change)
     extract_chunk: int = 65536
     extract_support_m: float = 1.0  # confidence 0 farther than this from every posed input point (0: off)
+    # upload faces farther than this from the field's extracted surface, where the field is confident, join the
+    # tile's mesh as measured (0: off; fusion.extract.add_detail): poles, signs and small obstacles the field
+    # cannot hold (one-sided, smeared by depth error, mislabelled so not inflated) keep the uploads' surface
+    detail_m: float = 0.4
     # "centroid": semantic head at each face's centroid; "vertices": majority of the vertex labels; "vote": the
     # majority label of the posed input points within 0.3 m of the centroid (head's label where none): 2x2
     # camera bench, seeds 0/1/2, sem F 0.367/0.388/0.232 (centroid) -> 0.396/0.408/0.226 (vote), traffic signs
@@ -378,6 +382,8 @@ class FusionConfig:
             raise ValueError("fine_drift needs fine_solver=gn (the drift is solved with the normal equations)")
         if self.fine_drift and not (self.fine_drift_scale_sigma > 0 and self.fine_drift_bend_deg_per_m > 0):
             raise ValueError("fine_drift_scale_sigma and fine_drift_bend_deg_per_m must be > 0")
+        if self.detail_m < 0:
+            raise ValueError(f"detail_m must be >= 0 (0: off), got {self.detail_m}")
         if not 0 <= self.realign_iterations_fraction <= 1:
             raise ValueError(f"realign_iterations_fraction must be in [0, 1], got {self.realign_iterations_fraction}")
         if self.align_iterations_per_tile < 0:
@@ -424,6 +430,7 @@ class FusionConfig:
                 c_th=0.5,  # a few iterations leave confidences lower than a full schedule does
                 extract_voxel_m=1.0,
                 extract_support_m=2.0,  # two of its 1 m voxels
+                detail_m=1.5,  # a voxel and a half, as 0.4 m is of the cpu preset's 0.25 m
                 tile_margin_m=2.0,
                 align_iterations_per_tile=10,
                 align_incremental_iterations_per_tile=5,

@@ -353,6 +353,77 @@ def deflate_faces(vertices: np.ndarray, faces: np.ndarray, face_labels: np.ndarr
     return v - offset_m * normal * move[:, None]
 
 
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, edge_m: float) -> np.ndarray:
+    """Points on a triangle mesh no farther than about ``spacing_m`` from any point of it: the vertices and a
+    barycentric lattice on each face, fine enough for edges up to ``edge_m`` (a marching-cubes face's edges are
+    at most a voxel diagonal)."""
+    v = np.asarray(vertices, np.float64)
+    if not len(faces):
+        return v
+    k = max(1, math.ceil(edge_m / spacing_m))
+    ab = np.array([(a, b) for a in range(k + 1) for b in range(k + 1 - a)], np.float64) / k
+    w = np.column_stack([ab, 1.0 - ab.sum(axis=1)])  # (q, 3) barycentric weights, vertices included
+    tri = v[faces]  # (m, 3, 3)
+    return np.concatenate([v, np.einsum("qk,mkd->mqd", w, tri).reshape(-1, 3)])
+
+
+def detail_faces(surface: np.ndarray, vertices: np.ndarray, faces: np.ndarray, tile: TileSpec,
+                 z_range: tuple[float, float], gap_m: float) -> np.ndarray:
+    """Indices of the ``faces`` (of the posed uploads, map frame) whose centre lies in ``tile`` (x, y in
+    [min, max), z in ``z_range``) and farther than ``gap_m`` from every ``surface`` point (the field's mesh,
+    ``surface_samples``): what the uploads saw and the field did not reconstruct. Each face belongs to the
+    one tile its centre lies in, so neighbouring tiles never both take it."""
+    if not len(faces):
+        return np.zeros(0, np.int64)
+    centres = np.asarray(vertices, np.float64)[faces].mean(axis=1)
+    (x0, y0), size = tile.xy_min, tile.size_m
+    inside = np.flatnonzero((centres[:, 0] >= x0) & (centres[:, 0] < x0 + size) & (centres[:, 1] >= y0)
+                            & (centres[:, 1] < y0 + size) & (centres[:, 2] >= z_range[0])
+                            & (centres[:, 2] <= z_range[1]))
+    if not len(inside) or not len(surface):
+        return inside
+    dist, _ = cKDTree(surface).query(centres[inside], distance_upper_bound=gap_m)
+    return inside[~np.isfinite(dist)]
+
+
+def add_detail(
+    verts: np.ndarray, faces: np.ndarray, conf: np.ndarray, vertex_labels: np.ndarray, face_labels: np.ndarray,
+    detail: tuple[np.ndarray, np.ndarray], tile: TileSpec, z_range: tuple[float, float], gap_m: float, c_th: float,
+    attr_fn: AttrFn, label_at: Callable[[np.ndarray], np.ndarray] | None, voxel_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The field's mesh with the upload faces it lost added as measured (``detail_faces``), where the field
+    is confident (every vertex at or above ``c_th``: what the consensus dropped, a car that drove off, stays
+    out). A pole, a sign or a small obstacle thinner or smaller than the field's finest cells, seen from
+    one side and mislabelled by the segmenter (so not inflated as a thin class), leaves no zero crossing
+    on the extraction lattice; its uploaded surface does. Labels: ``label_at`` at each face's centre
+    (``face_labels`` "centroid" / "vote"), else the majority of its vertices' head labels. Returns the
+    vertices, faces, confidence, vertex and face labels, and the number of faces added."""
+    dv, df = np.asarray(detail[0], np.float64), np.asarray(detail[1], np.int64)
+    surface = surface_samples(verts, faces, gap_m / 3, voxel_m * math.sqrt(2))
+    chosen = df[detail_faces(surface, dv, df, tile, z_range, gap_m)]
+    if not len(chosen):
+        return verts, faces, conf, vertex_labels, face_labels, 0
+    used, inverse = np.unique(chosen, return_inverse=True)
+    new_conf, new_labels = (np.array(a) for a in attr_fn(dv[used]))
+    new_faces = inverse.reshape(-1, 3)
+    sure = (new_conf >= c_th)[new_faces].all(axis=1)
+    if not sure.any():
+        return verts, faces, conf, vertex_labels, face_labels, 0
+    new_faces = new_faces[sure]
+    kept = np.flatnonzero(np.bincount(new_faces.ravel(), minlength=len(used)))
+    remap = np.full(len(used), -1, np.int64)
+    remap[kept] = np.arange(len(kept))
+    new_faces = remap[new_faces]
+    new_verts, new_conf, new_vl = dv[used][kept], new_conf[kept], new_labels[kept].astype(np.uint8)
+    if label_at is not None:
+        new_fl = label_at(new_verts[new_faces].mean(axis=1)).astype(np.uint8)
+    else:
+        new_fl = _face_labels(new_vl, new_faces).astype(np.uint8)
+    return (np.concatenate([verts, new_verts]), np.concatenate([faces, new_faces + len(verts)]),
+            np.concatenate([conf, new_conf]), np.concatenate([vertex_labels, new_vl]),
+            np.concatenate([face_labels, new_fl]), int(len(new_faces)))
+
+
 def split_label_boundaries(
     verts: np.ndarray, faces: np.ndarray, conf: np.ndarray, vertex_labels: np.ndarray, face_labels: np.ndarray,
     seam: np.ndarray, label_fn: Callable[[np.ndarray], np.ndarray],
@@ -414,6 +485,8 @@ def extract_mesh(
     deflate_labels: Sequence[int] = (),
     deflate_m: float = 0.0,
     split_labels: bool = False,
+    detail: tuple[np.ndarray, np.ndarray] | None = None,
+    detail_m: float = 0.0,
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
@@ -426,7 +499,9 @@ def extract_mesh(
     on seam planes too, so neighbours still agree. ``deflate_labels`` / ``deflate_m``: faces so labelled move
     ``deflate_m`` in along their normals (``deflate_faces``), seam vertices excepted. ``split_labels`` (with
     ``centroid`` or ``vote`` labels): faces on a class boundary split in four, each quarter labelled at its
-    centroid (``split_label_boundaries``).
+    centroid (``split_label_boundaries``). ``detail`` (vertices (n, 3) map frame, faces (m, 3)): the posed
+    uploads; with ``detail_m`` > 0 their faces farther than that from the field's surface, where it is
+    confident, join the mesh as measured (``add_detail``).
     """
     if support is not None and support_m > 0:
         attr_fn = supported_attrs(attr_fn, support, support_m)
@@ -468,16 +543,17 @@ def extract_mesh(
     faces = remap[faces]
     verts, conf, labels, seam = verts[used], conf[used], labels[used], seam[used]
     vl = labels.astype(np.uint8)
+
+    def label_at(x: np.ndarray) -> np.ndarray:
+        head = np.asarray(attr_fn(x)[1])
+        if face_labels == "vote":
+            assert support is not None and support_labels is not None
+            return voted_labels(x, head, support, support_labels)
+        return head
+
     if not len(faces):
         fl = np.zeros(0, np.uint8)
     elif face_labels in ("centroid", "vote"):
-        def label_at(x: np.ndarray) -> np.ndarray:
-            head = np.asarray(attr_fn(x)[1])
-            if face_labels == "vote":
-                assert support is not None and support_labels is not None
-                return voted_labels(x, head, support, support_labels)
-            return head
-
         fl = label_at(verts[faces].mean(axis=1)).astype(np.uint8)
         if split_labels:
             before = len(faces)
@@ -486,6 +562,10 @@ def extract_mesh(
     else:
         fl = _face_labels(vl, faces).astype(np.uint8)
     verts = deflate_faces(verts, faces, fl, deflate_labels, deflate_m, fixed=seam)
+    if detail is not None and detail_m > 0:
+        verts, faces, conf, vl, fl, stats["detail_faces"] = add_detail(
+            verts, faces, conf, vl, fl, detail, tile, (lat.k0[2] * voxel_m, lat.k1[2] * voxel_m), detail_m, c_th,
+            attr_fn, label_at if face_labels in ("centroid", "vote") else None, voxel_m)
     mesh = FusedMesh(verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32), fl)
     stats["faces"] = int(len(faces))
     return mesh, border, stats

@@ -317,8 +317,23 @@ def _extract(
         deflate_labels=config.thin_label_ids() if config.thin_deflate else (),
         deflate_m=config.thin_inflate_m,
         split_labels=config.face_label_split,
+        detail=_posed_uploads(problem) if config.detail_m > 0 else None,
+        detail_m=config.detail_m,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
+
+
+def _posed_uploads(problem: TileProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Every submap of the tile's problem at its current pose (map frame): vertices (n, 3), faces (m, 3)."""
+    with torch.no_grad():
+        poses = problem.poses().double().cpu().numpy()
+    verts, faces, offset = [], [], 0
+    for sm, pose in zip(problem.submaps, poses, strict=True):
+        v = np.asarray(sm.mesh.vertices, np.float64)
+        verts.append(v @ pose[:3, :3].T + pose[:3, 3] + problem.origin)
+        faces.append(np.asarray(sm.mesh.faces, np.int64) + offset)
+        offset += len(v)
+    return np.concatenate(verts), np.concatenate(faces)
 
 
 def _posed_pool(problem: TileProblem) -> torch.Tensor:

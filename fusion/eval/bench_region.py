@@ -175,6 +175,24 @@ def _recon_times(results: dict[tuple[int, int], FusionResult]) -> dict[str, floa
                                             for m in split])}
 
 
+def without_detail(results: dict[tuple[int, int], FusionResult]) -> dict[tuple[int, int], FusionResult] | None:
+    """The tiles' meshes without the upload faces their extraction added (``FusionConfig.detail_m``,
+    ``fusion.extract.add_detail``: appended after the field's faces and vertices), i.e. what ``detail_m=0``
+    extracts from the same fields; None where no tile added any."""
+    if not any(r.metrics.get("extract", {}).get("detail_faces") for r in results.values()):
+        return None
+    out = {}
+    for key, r in results.items():
+        n = r.metrics.get("extract", {}).get("detail_faces", 0)
+        m = r.mesh
+        if n:
+            faces = m.faces[:len(m.faces) - n]
+            nv = int(faces.max()) + 1 if len(faces) else 0
+            m = FusedMesh(m.vertices[:nv], faces, m.vertex_labels[:nv], m.vertex_confidence[:nv], m.face_labels[:len(faces)])
+        out[key] = replace(r, mesh=m)
+    return out
+
+
 def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose] | None,
           config: FusionConfig | None = None) -> dict[str, Any]:
     cfg = config or ctx.config
@@ -186,6 +204,10 @@ def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose]
                          skipped=skipped, align_metrics=align)
     wall = time.perf_counter() - t0
     figs = evaluate_region(ctx, results, None if fixed is not None else refined)
+    plain = without_detail(results)
+    if plain is not None:  # the same fields' meshes as detail_m=0 extracts them: the component's ablation, free
+        figs["without_detail"] = evaluate_region(ctx, plain, None if fixed is not None else refined)
+        figs["detail_faces"] = sum(r.metrics["extract"].get("detail_faces", 0) for r in results.values())
     figs |= seam_gaps(results, ctx.tile_size, cfg.extract_voxel_m)
     align_s = sum(a["duration_s"] for a in align)
     figs |= {"wall_s": wall, "align_s": align_s, "align_s_per_tile": align_s / max(1, len(keys)),
@@ -402,6 +424,7 @@ COMPONENTS: tuple[str, ...] = (
     "thin_deflate=false",  # ... inflated, and their extracted faces not moved back in by as much
     "recon_warm_fraction=0",  # reconstruction from scratch, not from the alignment's field
     "extract_support_m=0",  # no surface farther than 1 m from every posed input point
+    "detail_m=0",  # upload faces the field did not reconstruct (0.4 m from its surface, confident) left out
     "face_labels=vote",  # face labels voted by the posed input points near each face
     "face_label_split=true",  # faces on a class boundary split in four, each quarter labelled at its centroid
 )
@@ -458,6 +481,10 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
             raise ValueError(f"unknown region bench row {name!r} (known: {', '.join(ROWS)})")
     for name, variant in variant_configs.items():
         report_rows[name] = _fuse(ctx, keys, None, variant)
+    for name in [n for n, row in report_rows.items() if "without_detail" in row]:
+        row = report_rows[name]
+        report_rows[f"{name}, no detail"] = row.pop("without_detail") | {
+            k: v for k, v in row.items() if k.startswith("pose_")}
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "sensor": sensor,
               "tiles": tiles,
               "tile_size_m": size, "simulate_s": sim_s, "submaps": len(ctx.submaps), "rows": report_rows,

@@ -313,3 +313,50 @@ def test_faces_on_a_class_boundary_split_and_follow_a_strip_narrower_than_a_voxe
 
     assert area(split) == pytest.approx(area(plain), rel=1e-6)
     assert len(split.vertex_labels) == len(split.vertices) == len(split.vertex_confidence)
+
+
+def _quad_grid(x0: float, x1: float, y0: float, y1: float, z: float, n: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """A flat square grid of triangles at height ``z`` (an upload's surface)."""
+    xs, ys = np.meshgrid(np.linspace(x0, x1, n + 1), np.linspace(y0, y1, n + 1), indexing="ij")
+    v = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, z)])
+    k = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    a, b, c, d = k.ravel(), k.ravel() + n + 1, k.ravel() + n + 2, k.ravel() + 1
+    return v, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+
+
+def test_upload_faces_the_field_lost_join_the_mesh_where_it_is_confident() -> None:
+    """The field holds the ground (z = 1) only. The uploads have the ground too (on the field's surface: not
+    added), a small plate 1.5 m above it in a confident place (added, as measured, labelled there), one in an
+    unconfident place (a car the consensus dropped: not added), and one across the tile border (its faces go
+    to the tile their centre lies in, so the two tiles never both hold one)."""
+    def flat(x: np.ndarray) -> np.ndarray:
+        return x[:, 2] - 1.0
+
+    def attrs(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        unsure = (np.abs(x[:, 0] - 6.2) < 0.5) & (np.abs(x[:, 1] - 6.2) < 0.5) & (x[:, 2] > 2.0)
+        return np.where(unsure, 0.1, 0.9), np.where(x[:, 2] > 2.0, 7, 1)
+
+    pieces = [_quad_grid(0.5, 7.5, 0.5, 7.5, 1.0, 16), _quad_grid(2.0, 2.4, 2.0, 2.4, 2.5, 2),
+              _quad_grid(6.0, 6.4, 6.0, 6.4, 2.5, 2), _quad_grid(7.8, 8.2, 3.0, 3.4, 2.5, 4)]
+    offsets = np.cumsum([0] + [len(v) for v, _ in pieces[:-1]])
+    detail = (np.concatenate([v for v, _ in pieces]), np.concatenate([f + o for (_, f), o in zip(pieces, offsets, strict=True)]))
+    tile = TileSpec(0, 0, 8.0)
+    plain, _, _ = extract_mesh(flat, attrs, tile, (0.0, 3.0), 0.25, face_labels="centroid")
+    mesh, _, stats = extract_mesh(flat, attrs, tile, (0.0, 3.0), 0.25, face_labels="centroid", detail=detail,
+                                  detail_m=0.4)
+    right, _, right_stats = extract_mesh(flat, attrs, TileSpec(1, 0, 8.0), (0.0, 3.0), 0.25, face_labels="centroid",
+                                         detail=detail, detail_m=0.4)
+    added = mesh.vertices[mesh.faces[len(plain.faces):]].mean(axis=1)
+    assert np.array_equal(mesh.faces[:len(plain.faces)], plain.faces)  # the field's mesh is unchanged
+    plate = (np.abs(added[:, 0] - 2.2) < 0.3) & (np.abs(added[:, 1] - 2.2) < 0.3)
+    border = np.abs(added[:, 0] - 8.0) < 0.3
+    assert plate.sum() == 8 and np.all(np.abs(added[:, 2] - 2.5) < 1e-6)  # every face of the plate, where it was
+    assert plate.sum() + border.sum() == stats["detail_faces"] == len(added)  # no ground, no unconfident plate
+    assert np.all(mesh.face_labels[len(plain.faces):] == 7)
+    assert np.all(mesh.vertex_confidence[len(plain.vertices):] >= 0.7)
+    assert np.all(added[border, 0] < 8.0) and border.sum() == 16  # the border plate's left half here ...
+    right_added = right.vertices[right.faces[-right_stats["detail_faces"]:]].mean(axis=1)
+    assert right_stats["detail_faces"] == 16 and np.all(right_added[:, 0] >= 8.0)  # ... its right half there
+    off, _, off_stats = extract_mesh(flat, attrs, tile, (0.0, 3.0), 0.25, face_labels="centroid", detail=detail,
+                                     detail_m=0.0)
+    assert len(off.faces) == len(plain.faces) and "detail_faces" not in off_stats

@@ -73,6 +73,22 @@ def test_merge_meshes_reindexes_faces() -> None:
     assert len(m.vertices) == 6 and m.faces.tolist() == [[0, 1, 2], [3, 4, 5]]
 
 
+def test_without_detail_strips_the_faces_the_extraction_appended() -> None:
+    """The bench scores the same fields' meshes without the upload faces (``detail_m=0``'s extraction, free)."""
+    field = _mesh(np.eye(3))
+    both = merge_meshes([field, _mesh(np.eye(3) + 5)])  # the field's face, then one upload face appended
+    both.face_labels[1] = 7
+    results = {(0, 0): FusionResult(both, {}, {"extract": {"detail_faces": 1}}, {}, {}),
+               (1, 0): FusionResult(_mesh(np.eye(3) + 9), {}, {"extract": {}}, {}, {})}
+    plain = bench_region.without_detail(results)
+    assert plain is not None
+    stripped = plain[(0, 0)].mesh
+    assert stripped.faces.tolist() == [[0, 1, 2]] and np.array_equal(stripped.vertices, field.vertices)
+    assert stripped.face_labels.tolist() == [field.face_labels[0]] and len(stripped.vertex_confidence) == 3
+    assert plain[(1, 0)].mesh is results[(1, 0)].mesh
+    assert bench_region.without_detail({(1, 0): results[(1, 0)]}) is None  # nothing added: no such row
+
+
 def _fake_bench(monkeypatch: pytest.MonkeyPatch) -> tuple[list[str], list[FusionConfig]]:
     """The region bench with simulation, preparation and fusion replaced by recorders."""
     import fusion.eval.synth.simulate as simulate_module
