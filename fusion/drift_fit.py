@@ -8,7 +8,7 @@ of ``fusion.align`` (metres).
 from __future__ import annotations
 
 import math
-from typing import Protocol
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -18,9 +18,11 @@ from fusion.config import FusionConfig
 from fusion.sampling import transform
 
 
-class Matches(Protocol):
-    """A round's correspondences as ``fusion.register`` holds them: owners (submap index), local points (as
-    corrected), the pair's normal (region frame), per-match weight and the Cauchy scale ``sigma`` (m)."""
+@dataclass
+class Matches:
+    """One round of ``fusion.register``'s correspondences: owners (submap index), local points (as corrected)
+    and the pair's normal (region frame), each submap's per-match weight ``w`` and the Cauchy scale ``sigma`` (m).
+    Here, not in ``fusion.register``, so the drift solve needs no import back."""
 
     src: torch.Tensor
     dst: torch.Tensor
@@ -29,6 +31,10 @@ class Matches(Protocol):
     normal: torch.Tensor
     w: torch.Tensor
     sigma: float
+
+    def residual(self, poses: torch.Tensor) -> torch.Tensor:
+        """Point-to-plane residuals (m) at ``poses``."""
+        return ((transform(poses, self.src, self.p_src) - transform(poses, self.dst, self.p_dst)) * self.normal).sum(-1)
 
 
 def corrected_samples(raw: np.ndarray, owner: np.ndarray, bends: np.ndarray, axes: np.ndarray) -> np.ndarray:

@@ -53,7 +53,7 @@ from scipy.spatial import cKDTree
 
 from fusion import drift, se3
 from fusion.config import FusionConfig
-from fusion.drift_fit import corrected_samples, drift_step
+from fusion.drift_fit import Matches, corrected_samples, drift_step
 from fusion.losses import gps_prior_loss, odometry_loss, pose_residual
 from fusion.poses import PoseSet
 from fusion.sampling import face_geometry, on_triangles, transform, uniform_barycentric
@@ -233,14 +233,14 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             return ((a - transform(t, own_t[d_idx], pts_t[d_idx])) * n_pair).sum(-1)
 
         if gauss_newton:
-            match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
+            match = Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
             current, steps = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour, config.fine_steps)
             # the drift given the poses, then the poses given the drift, on the same matches; not in the basin's
             # extra rounds (wider than fine_max_dist_m), whose matches still include the wrong walls
             if correct and not basin:
                 bends = drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config)
                 pts_t = torch.tensor(corrected_samples(pts, own, bends, axes), device=dev)
-                match = _Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
+                match = Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
                 current, more = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour,
                                               config.fine_steps)
                 steps += more
@@ -343,24 +343,6 @@ def _noise_gain(residual: np.ndarray, sigma: float, config: FusionConfig, on: bo
     return float(np.clip((sigma / spread) ** 2, 1.0, config.fine_noise_max_gain))
 
 
-@dataclass
-class _Matches:
-    """One round's correspondences: owners, local points and the pair's normal (region frame), each
-    submap's per-match weight ``w`` and the Cauchy scale ``sigma`` (m)."""
-
-    src: torch.Tensor
-    dst: torch.Tensor
-    p_src: torch.Tensor
-    p_dst: torch.Tensor
-    normal: torch.Tensor
-    w: torch.Tensor
-    sigma: float
-
-    def residual(self, poses: torch.Tensor) -> torch.Tensor:
-        """Point-to-plane residuals (m) at ``poses``."""
-        return ((transform(poses, self.src, self.p_src) - transform(poses, self.dst, self.p_dst)) * self.normal).sum(-1)
-
-
 def _chain_colours(subs: list[SubmapInput]) -> list[int]:
     """0/1 alternating along each session's chain (by seq): an odometry pair always joins one of each, so
     perturbing every submap of one colour at once gives each pair's derivative for its submap of that colour."""
@@ -459,7 +441,7 @@ def _normal_equations(m: int, keys: list[tuple[torch.Tensor, torch.Tensor, torch
     return full[free_dofs][:, free_dofs].tocsc()
 
 
-def _linearise(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: torch.Tensor, local_cents: torch.Tensor,
+def _linearise(poses: torch.Tensor, match: Matches, terms: PoseTerms, gps: torch.Tensor, local_cents: torch.Tensor,
                colour: torch.Tensor, free_dofs: np.ndarray) -> tuple[scipy.sparse.csc_matrix, np.ndarray, torch.Tensor]:
     """The IRLS normal equations at ``poses`` over the twists ``free_dofs`` (indices into M·6): the
     sparse matrix JᵀWJ, the gradient JᵀWr (both of the data, odometry and GPS terms) and the submaps'
@@ -493,7 +475,7 @@ def _linearise(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: torc
     return h, g, cents
 
 
-def _gauss_newton(poses: torch.Tensor, match: _Matches, terms: PoseTerms, gps: torch.Tensor,
+def _gauss_newton(poses: torch.Tensor, match: Matches, terms: PoseTerms, gps: torch.Tensor,
                   local_cents: torch.Tensor, free: torch.Tensor, colour: torch.Tensor, steps: int
                   ) -> tuple[torch.Tensor, int]:
     """Minimise  Σ w·log(1 + (r/σ)²)  +  odometry  +  GPS  over the free submaps' poses by

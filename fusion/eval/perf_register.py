@@ -18,7 +18,8 @@ import time
 import numpy as np
 import torch
 
-from fusion.register import _chain_colours, _gauss_newton, _Matches
+from fusion.drift_fit import Matches
+from fusion.register import _chain_colours, _gauss_newton
 from fusion.training import PoseTerms
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 
@@ -32,7 +33,7 @@ def _yaw(deg: float) -> np.ndarray:
 
 
 def synthetic_region(submaps: int, sessions: int, matches: int, seed: int = 0
-                     ) -> tuple[torch.Tensor, _Matches, PoseTerms, torch.Tensor, torch.Tensor, torch.Tensor]:
+                     ) -> tuple[torch.Tensor, Matches, PoseTerms, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(start poses, matches, odometry/GPS terms, GPS anchors, local centroids, chain colours)."""
     rng = np.random.default_rng(seed)
     per = max(2, submaps // sessions)
@@ -61,7 +62,7 @@ def synthetic_region(submaps: int, sessions: int, matches: int, seed: int = 0
         src.append(np.full(matches, a))
         dst.append(np.full(matches, b))
         normal.append(n)
-    match = _Matches(torch.tensor(np.concatenate(src)), torch.tensor(np.concatenate(dst)),
+    match = Matches(torch.tensor(np.concatenate(src)), torch.tensor(np.concatenate(dst)),
                      torch.tensor(np.concatenate(p_src)), torch.tensor(np.concatenate(p_dst)),
                      torch.tensor(np.concatenate(normal)), torch.ones(len(pairs) * matches, dtype=torch.float64), 0.1)
     poses = torch.tensor(np.stack([s.pose_init.matrix() for s in subs]))
