@@ -515,19 +515,45 @@ def extract_mesh(
     pinned = apply_border_pins(vol, lat, border_pins, pinned_attrs, exact=mask) if border_pins else 0
     border = border_planes(vol, lat, attr_fn, pinned_attrs)
     stats: dict[str, Any] = {"lattice_shape": list(lat.shape), "band_points": int(mask.sum()), "pinned": pinned}
+    z_lat = (lat.k0[2] * voxel_m, lat.k1[2] * voxel_m)
+
+    def label_at(x: np.ndarray) -> np.ndarray:
+        head = np.asarray(attr_fn(x)[1])
+        if face_labels == "vote":
+            assert support is not None and support_labels is not None
+            return voted_labels(x, head, support, support_labels)
+        return head
+
+    def finish(verts: np.ndarray, faces: np.ndarray, conf: np.ndarray, vl: np.ndarray, fl: np.ndarray,
+               ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
+        """The mesh with the uploads' detail added (also where the field left no surface in the tile)."""
+        if detail is not None and detail_m > 0:
+            verts, faces, conf, vl, fl, stats["detail_faces"] = add_detail(
+                verts, faces, conf, vl, fl, detail, tile, z_lat, detail_m, c_th, attr_fn,
+                label_at if face_labels in ("centroid", "vote") else None, voxel_m)
+        stats["faces"] = int(len(faces))
+        if not len(faces):
+            return FusedMesh.empty(), border, stats
+        return FusedMesh(verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32), fl), border, stats
+
+    def nothing() -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
+        e = FusedMesh.empty()
+        return finish(e.vertices.astype(np.float64), e.faces.astype(np.int64), e.vertex_confidence.astype(np.float64),
+                      e.vertex_labels, e.face_labels)
+
     if not ((vol > 0).any() and (vol < 0).any()):
-        return FusedMesh.empty(), border, stats
+        return nothing()
     # skimage's "descent" winding makes right-hand face normals point to s > 0 (free space); pinned by
     # the sphere test in tests/fusion/test_extract.py
     try:
         verts_idx, faces, _, _ = marching_cubes(vol, level=0.0, gradient_direction="descent", allow_degenerate=False,
                                                 mask=cube_mask(mask))
     except RuntimeError:  # skimage: "No surface found" (the crossings lie outside the band only)
-        return FusedMesh.empty(), border, stats
+        return nothing()
     verts = (verts_idx.astype(np.float64) + np.asarray(lat.k0, np.float64)) * voxel_m
     stats["raw_faces"] = int(len(faces))
     if len(faces) == 0:
-        return FusedMesh.empty(), border, stats
+        return nothing()
     conf, labels = attr_fn(verts)
     conf, labels = np.array(conf, np.float64), np.array(labels, np.int64)
     seam = _border_attrs(verts_idx, lat, border, conf, labels)
@@ -544,13 +570,6 @@ def extract_mesh(
     verts, conf, labels, seam = verts[used], conf[used], labels[used], seam[used]
     vl = labels.astype(np.uint8)
 
-    def label_at(x: np.ndarray) -> np.ndarray:
-        head = np.asarray(attr_fn(x)[1])
-        if face_labels == "vote":
-            assert support is not None and support_labels is not None
-            return voted_labels(x, head, support, support_labels)
-        return head
-
     if not len(faces):
         fl = np.zeros(0, np.uint8)
     elif face_labels in ("centroid", "vote"):
@@ -562,10 +581,4 @@ def extract_mesh(
     else:
         fl = _face_labels(vl, faces).astype(np.uint8)
     verts = deflate_faces(verts, faces, fl, deflate_labels, deflate_m, fixed=seam)
-    if detail is not None and detail_m > 0:
-        verts, faces, conf, vl, fl, stats["detail_faces"] = add_detail(
-            verts, faces, conf, vl, fl, detail, tile, (lat.k0[2] * voxel_m, lat.k1[2] * voxel_m), detail_m, c_th,
-            attr_fn, label_at if face_labels in ("centroid", "vote") else None, voxel_m)
-    mesh = FusedMesh(verts.astype(np.float32), faces.astype(np.int32), vl, conf.astype(np.float32), fl)
-    stats["faces"] = int(len(faces))
-    return mesh, border, stats
+    return finish(verts, faces, conf, vl, fl)

@@ -360,3 +360,22 @@ def test_upload_faces_the_field_lost_join_the_mesh_where_it_is_confident() -> No
     off, _, off_stats = extract_mesh(flat, attrs, tile, (0.0, 3.0), 0.25, face_labels="centroid", detail=detail,
                                      detail_m=0.0)
     assert len(off.faces) == len(plain.faces) and "detail_faces" not in off_stats
+
+
+def test_upload_detail_joins_a_tile_where_the_field_left_no_surface() -> None:
+    """A tile whose field holds no surface at all (free space everywhere, confident) still gets the upload faces
+    of a plate the field did not form; with detail off it stays empty."""
+    def free(x: np.ndarray) -> np.ndarray:
+        return np.full(len(x), 5.0)
+
+    def attrs(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.full(len(x), 0.9), np.full(len(x), 7)
+
+    detail = _quad_grid(2.0, 2.4, 2.0, 2.4, 2.5, 2)
+    tile = TileSpec(0, 0, 8.0)
+    empty, _, _ = extract_mesh(free, attrs, tile, (0.0, 3.0), 0.25, face_labels="centroid")
+    mesh, _, stats = extract_mesh(free, attrs, tile, (0.0, 3.0), 0.25, face_labels="centroid", detail=detail,
+                                  detail_m=0.4)
+    assert len(empty.faces) == 0
+    assert stats["detail_faces"] == len(mesh.faces) == 8 and np.all(mesh.face_labels == 7)
+    assert np.allclose(np.sort(mesh.vertices, axis=0), np.sort(detail[0].astype(np.float32), axis=0))
