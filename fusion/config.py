@@ -343,7 +343,9 @@ class FusionConfig:
     extract_support_m: float = 1.0  # confidence 0 farther than this from every posed input point (0: off)
     # upload faces farther than this from the field's extracted surface, where the field is confident, join the
     # tile's mesh as measured (0: off; fusion.extract.add_detail): poles, signs and small obstacles the field
-    # cannot hold (one-sided, smeared by depth error, mislabelled so not inflated) keep the uploads' surface
+    # cannot hold (one-sided, smeared by depth error, mislabelled so not inflated) keep the uploads' surface.
+    # Only faces the cross-session consensus kept are offered (fusion.reconstruct._posed_uploads): the field's
+    # confidence alone let single-session cars in beside another session's car in the same slot
     detail_m: float = 0.4
     # "centroid": semantic head at each face's centroid; "vertices": majority of the vertex labels; "vote": the
     # majority label of the posed input points within 0.3 m of the centroid (head's label where none): 2x2

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from fusion.config import FusionConfig
 from fusion.errors import FusionError
@@ -317,21 +318,43 @@ def _extract(
         deflate_labels=config.thin_label_ids() if config.thin_deflate else (),
         deflate_m=config.thin_inflate_m,
         split_labels=config.face_label_split,
-        detail=_posed_uploads(problem) if config.detail_m > 0 else None,
+        detail=_posed_uploads(problem, config.c_th) if config.detail_m > 0 else None,
         detail_m=config.detail_m,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
 
 
-def _posed_uploads(problem: TileProblem) -> tuple[np.ndarray, np.ndarray]:
-    """Every submap of the tile's problem at its current pose (map frame): vertices (n, 3), faces (m, 3)."""
+# a face's own surface samples: the pool draws a few per m² of a submap, so four lie within half a metre of most
+# faces (a pole's too); a face with none that close is one the pool never sampled
+KEPT_RADIUS_M = 0.5
+
+
+def _posed_uploads(problem: TileProblem, kept_above: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Every submap of the tile's problem at its current pose (map frame): vertices (n, 3), faces (m, 3).
+    ``kept_above``: only the faces the cross-session consensus kept, i.e. whose own surface samples nearby
+    (the submap's pool points within ``KEPT_RADIUS_M`` of the face's centre, up to four) have a mean
+    confidence target at or above it; a face with none nearby is left out."""
     with torch.no_grad():
         poses = problem.poses().double().cpu().numpy()
+    pool_pts = problem.pool.points.cpu().numpy()
+    pool_sub = problem.pool.submap.cpu().numpy()
+    pool_conf = problem.pool.conf_target.cpu().numpy()
     verts, faces, offset = [], [], 0
-    for sm, pose in zip(problem.submaps, poses, strict=True):
+    for k, (sm, pose) in enumerate(zip(problem.submaps, poses, strict=True)):
         v = np.asarray(sm.mesh.vertices, np.float64)
+        f = np.asarray(sm.mesh.faces, np.int64)
+        if kept_above is not None and len(f):
+            own = pool_sub == k
+            if own.any():
+                dist, idx = cKDTree(pool_pts[own]).query(v[f].mean(axis=1), k=4, distance_upper_bound=KEPT_RADIUS_M)
+                found = np.isfinite(dist)
+                conf = np.where(found, pool_conf[own][np.minimum(idx, own.sum() - 1)], 0.0)
+                mean = conf.sum(axis=1) / np.maximum(found.sum(axis=1), 1)
+                f = f[found.any(axis=1) & (mean >= kept_above)]
+            else:
+                f = f[:0]
         verts.append(v @ pose[:3, :3].T + pose[:3, 3] + problem.origin)
-        faces.append(np.asarray(sm.mesh.faces, np.int64) + offset)
+        faces.append(f + offset)
         offset += len(v)
     return np.concatenate(verts), np.concatenate(faces)
 

@@ -177,3 +177,37 @@ def test_a_fence_thinner_than_the_cells_survives_when_inflated_or_kept_as_upload
     assert inflated >= 0.9 and inflated > plain + 0.2, (plain, inflated)
     kept = fence_recall(0.0, 0.4)  # one machine: 0.90
     assert kept >= 0.85 and kept > plain + 0.1, (plain, kept)
+
+
+def test_upload_detail_candidates_are_only_faces_the_consensus_kept() -> None:
+    """The faces offered to the extraction as upload detail (``detail_m``) are those whose own surface
+    samples the cross-session consensus kept: session b's obstacle, which session a drove past and did not
+    see (a single-session object), is not offered above the height where the consensus takes the road
+    beneath it as a second witness (its lower ~0.75 m: ``consensus_radius_m``); the ground is."""
+    import torch
+
+    from fusion.reconstruct import _posed_uploads, build_problem, update_consensus
+
+    subs, _ = two_sessions(offset=(0.0, 0.0, 0.0))
+    cfg = tiny_config()
+    problem = build_problem(subs, TILE, cfg, torch.device("cpu"))
+    update_consensus(problem, cfg)
+    everything = _posed_uploads(problem)
+    kept = _posed_uploads(problem, cfg.c_th)
+    assert np.array_equal(kept[0], everything[0])  # same vertices, fewer faces
+    b = [k for k, sm in enumerate(problem.submaps) if sm.id == "b"][0]
+    first_b = sum(len(sm.mesh.vertices) for sm in problem.submaps[:b])
+
+    def centres(faces: np.ndarray) -> np.ndarray:
+        return everything[0][faces].mean(axis=1)
+
+    def on_obstacle(faces: np.ndarray) -> np.ndarray:  # session b's extra box: 2 m cube about (12, 4, 1)
+        c = centres(faces)
+        return (faces[:, 0] >= first_b) & np.all(np.abs(c - [12.0, 4.0, 1.0]) < 1.05, axis=1) & (c[:, 2] > 1.0)
+
+    def on_ground(faces: np.ndarray) -> np.ndarray:
+        c = centres(faces)
+        return (np.abs(c[:, 2]) < 0.05) & (np.hypot(c[:, 0] - 12.0, c[:, 1] - 4.0) > 2.5)
+
+    assert on_obstacle(everything[1]).sum() > 50 and on_obstacle(kept[1]).sum() <= 0.05 * on_obstacle(everything[1]).sum()
+    assert on_ground(kept[1]).sum() >= 0.9 * on_ground(everything[1]).sum()
