@@ -393,7 +393,8 @@ def add_detail(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """The field's mesh with the upload faces it lost added as measured (``detail_faces``), where the field
     is confident (every vertex at or above ``c_th``; the reconstruction offers only faces the consensus kept,
-    ``fusion.reconstruct._posed_uploads``: a car that drove off stays out). A pole, a sign or a small obstacle thinner or smaller than the field's finest cells, seen from
+    ``fusion.reconstruct._posed_uploads``: a car that drove off stays out). A pole, a sign or a small
+    obstacle thinner or smaller than the field's finest cells, seen from
     one side and mislabelled by the segmenter (so not inflated as a thin class), leaves no zero crossing
     on the extraction lattice; its uploaded surface does. Labels: ``label_at`` at each face's centre
     (``face_labels`` "centroid" / "vote"), else the majority of its vertices' head labels. Returns the
