@@ -318,7 +318,7 @@ def _extract(
         deflate_labels=config.thin_label_ids() if config.thin_deflate else (),
         deflate_m=config.thin_inflate_m,
         split_labels=config.face_label_split,
-        detail=_posed_uploads(problem, config.c_th) if config.detail_m > 0 else None,
+        detail=_posed_uploads(problem, config.c_th, tile) if config.detail_m > 0 else None,
         detail_m=config.detail_m,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
@@ -329,11 +329,13 @@ def _extract(
 KEPT_RADIUS_M = 0.5
 
 
-def _posed_uploads(problem: TileProblem, kept_above: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _posed_uploads(problem: TileProblem, kept_above: float | None = None, tile: TileSpec | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Every submap of the tile's problem at its current pose (map frame): vertices (n, 3), faces (m, 3).
     ``kept_above``: only the faces the cross-session consensus kept, i.e. whose own surface samples nearby
     (the submap's pool points within ``KEPT_RADIUS_M`` of the face's centre, up to four) have a mean
-    confidence target at or above it; a face with none nearby is left out."""
+    confidence target at or above it; a face with none nearby is left out. ``tile``: only the faces whose
+    centre lies in its square (the only ones the detail takes, ``fusion.extract.detail_faces``)."""
     with torch.no_grad():
         poses = problem.poses().double().cpu().numpy()
     pool_pts = problem.pool.points.cpu().numpy()
@@ -343,6 +345,11 @@ def _posed_uploads(problem: TileProblem, kept_above: float | None = None) -> tup
     for k, (sm, pose) in enumerate(zip(problem.submaps, poses, strict=True)):
         v = np.asarray(sm.mesh.vertices, np.float64)
         f = np.asarray(sm.mesh.faces, np.int64)
+        posed = v @ pose[:3, :3].T + pose[:3, 3] + problem.origin
+        if tile is not None and len(f):
+            c = posed[f].mean(axis=1)
+            (x0, y0), size = tile.xy_min, tile.size_m
+            f = f[(c[:, 0] >= x0) & (c[:, 0] < x0 + size) & (c[:, 1] >= y0) & (c[:, 1] < y0 + size)]
         if kept_above is not None and len(f):
             own = pool_sub == k
             if own.any():
@@ -353,7 +360,7 @@ def _posed_uploads(problem: TileProblem, kept_above: float | None = None) -> tup
                 f = f[found.any(axis=1) & (mean >= kept_above)]
             else:
                 f = f[:0]
-        verts.append(v @ pose[:3, :3].T + pose[:3, 3] + problem.origin)
+        verts.append(posed)
         faces.append(f + offset)
         offset += len(v)
     return np.concatenate(verts), np.concatenate(faces)
