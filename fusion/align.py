@@ -23,6 +23,10 @@ lower corner, as ``reconstruct_tile``), so field states are independent of the r
 Incremental alignment (``frozen``): previous per-tile field states; submaps with ``free=False`` keep
 their poses. Tiles with a state are loaded and held (no field gradient; only the free submaps'
 surface samples are drawn there: tracking against the map), tiles without one are trained as usual.
+With ``align_incremental_iterations_per_tile`` 0 (the default) nothing is tracked or trained: the free
+submaps are placed by the coarse and fine registrations against the held ones, and a tile the map had no
+field for is reconstructed cold. Likewise ``align_iterations_per_tile`` 0 without a held map (a re-alignment
+with ``realign_iterations_fraction`` 0): the registrations alone, no field returned.
 """
 
 from __future__ import annotations
@@ -123,15 +127,17 @@ def align_region(
     origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
     poses, gps, coarse, drifts = _region_poses(subs, origin, config, dev)
     subs = [corrected_input(s, drifts.get(s.id)) for s in subs]  # the field sees each submap as corrected
-    if config.align_iterations_per_tile == 0 and not frozen:  # registration only: no field is trained
+    per_tile = config.align_incremental_iterations_per_tile if frozen else config.align_iterations_per_tile
+    if per_tile == 0:  # registration only: no field is trained (nor tracked against)
         return AlignResult(map_poses(poses, origin, subs), {}, drifts=drifts, metrics={
-            "losses": {}, "iterations": 0, "incremental": False, "registration_only": True,
+            "losses": {}, "iterations": 0, "incremental": bool(frozen), "registration_only": True,
             "duration_s": time.perf_counter() - t_start, "duration_train_s": 0.0, "device": str(dev),
             "num_submaps": len(subs), "num_free": int(sum(s.free for s in subs)), "num_tiles": len(tiles),
             "frozen_tiles": [], "skipped": {}, "coarse": coarse})
     built, skipped = _build_tiles(subs, tiles, config, dev, poses, origin, frozen)
     incremental = any(t.frozen for t in built)
-    per_tile = config.align_incremental_iterations_per_tile if incremental else config.align_iterations_per_tile
+    if not incremental:  # no frozen field among the region's tiles: a first alignment after all
+        per_tile = config.align_iterations_per_tile
     contents = [tile_content(_posed(t, poses()), t.problem.lo, t.problem.hi, config) for t in built]
     iterations = content_iterations(per_tile, contents, config)  # a grazed tile adds ~nothing
     t_train = time.perf_counter()

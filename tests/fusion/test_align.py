@@ -74,6 +74,26 @@ def test_incremental_alignment_moves_only_the_new_submaps() -> None:
     assert err_after < 0.5 * err_before, (err_before, err_after)
 
 
+def test_an_incremental_alignment_without_tracking_steps_is_the_registration_alone() -> None:
+    """``align_incremental_iterations_per_tile`` 0: a new submap is placed onto the held map by the
+    registrations alone (the held submaps fixed), no frozen field is tracked against and none is returned
+    (each tile is re-fused from its own last field); the new pose still lands on the held street."""
+    subs = _scene(offset=(0.0, 0.0, 0.0), yaw_deg=0.0)
+    cfg = _config(align_incremental_iterations_per_tile=0)
+    base = align_region([subs[0]], TILES, cfg.with_(align_iterations_per_tile=25))
+    fixed = replace(subs[0], pose_init=base.poses["a"], free=False)
+    new = replace(subs[1], pose_init=Pose(subs[1].pose_init.t + np.array([0.4, -0.3, 0.0]), subs[1].pose_init.q))
+    res = align_region([fixed, new], TILES, cfg, frozen=base.fields)
+    m = res.metrics
+    assert set(res.poses) == {"b"} and res.fields == {}
+    assert m["incremental"] and m["registration_only"] and m["iterations"] == 0
+    err_before = np.linalg.norm(new.pose_init.t - subs[1].pose_gps.t)
+    err_after = np.linalg.norm(res.poses["b"].t - base.poses["a"].t)  # truth: b on a (same street)
+    assert err_after < 0.5 * err_before, (err_before, err_after)
+    # without a held map the tracking steps do not apply: a first alignment trains its fields
+    assert align_region(subs, TILES, cfg.with_(align_iterations_per_tile=10)).fields
+
+
 def test_an_alignment_without_field_steps_is_the_registration_alone() -> None:
     """``align_iterations_per_tile`` 0 (a re-alignment with ``realign_iterations_fraction`` 0): the poses
     are where the registrations put them (``start_poses``), no field is trained or returned; a held map
@@ -93,6 +113,8 @@ def test_an_alignment_without_field_steps_is_the_registration_alone() -> None:
     assert FusionConfig(realign_iterations_fraction=0.0).for_realignment().align_iterations_per_tile == 0
     with pytest.raises(ValueError, match="align_iterations_per_tile"):
         FusionConfig(align_iterations_per_tile=-1)
+    with pytest.raises(ValueError, match="align_incremental_iterations_per_tile"):
+        FusionConfig(align_incremental_iterations_per_tile=-1)
 
 
 def test_align_levels_capped() -> None:
