@@ -248,18 +248,23 @@ class FusionConfig:
     # second added session, not at its first. > 1: never (``fusion.regions.needs_realignment``)
     realign_share: float = 1 / 3
     # a joint re-alignment starts from refined poses: this fraction of ``align_iterations_per_tile`` (the
-    # registration stages and the polish do the same work either way). add_sessions, map after the
-    # re-alignment, all steps -> half (geo F / sem F / pose m, re-alignment s): exact 1 0.982 / 0.773 / 0.091,
-    # 214 s -> 0.980 / 0.787 / 0.091, 161 s; camera 1 0.902 / 0.412 / 0.286, 195 s -> 0.901 / 0.390 / 0.282,
-    # 128 s; exact 0 0.983 / 0.803 / 0.124, 204 s -> 0.981 / 0.808 / 0.124, 135 s (the joint fusions 0.98 / 0.76-0.80 /
-    # 0.09-0.12; README, "A map grown session by session"). 0: registration alone, no field trained, every tile
-    # re-fused from its own last reconstruction: the addition 34-49 % of a full fusion instead of 60-68 %, but
-    # the old map's fine errors survive the short warm re-fusion (exact 0 sem F 0.757 against 0.811 jointly,
-    # exact 1 0.753 / 0.769, camera 1 geo F 0.884 / 0.902; README, "Re-alignment by registration alone")
-    realign_iterations_fraction: float = 0.5
-    # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). New session's
-    # pose RMSE, 2x2 bench, 3 sessions, camera seeds 0/1: 60/tile 0.280/0.334 m, 240/tile 0.171/0.243 m (+9 s)
-    align_incremental_iterations_per_tile: int = 240
+    # registration stages do the same work either way). 0 (default since 2026-12-05, twenty-fifth session):
+    # registration alone, no field trained, every tile re-fused from its own last reconstruction. add_sessions,
+    # map after the fifth session's re-alignment (geo F / sem F / pose m) against the joint fusion of the same
+    # data: exact 0 0.983 / 0.821 / 0.094 vs 0.985 / 0.825 / 0.105, exact 1 0.981 / 0.761 / 0.053 vs 0.982 /
+    # 0.771 / 0.072, camera 1 0.910 / 0.436 / 0.287 vs 0.918 / 0.428 / 0.284, camera 0 0.780 / 0.355 / 0.495 vs
+    # 0.776 / 0.375 / 0.481; the re-alignment 29-41 % of a full fusion instead of 60-68 % with half the steps
+    # (0.5, the default before: exact 1 0.980 / 0.787 / 0.091, camera 1 0.901 / 0.390 / 0.282). README,
+    # "Additions by registration alone". In the twentieth session the same setting lost exact 0 sem F 0.054.
+    realign_iterations_fraction: float = 0.0
+    # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). 0 (default since
+    # the twenty-fifth session): the new submaps placed by the registrations alone (the held submaps fixed), no
+    # frozen field tracked; a tile new to the map then starts cold. add_sessions, fourth session added, 240 -> 0
+    # (alignment s; map after the fifth): exact 1 45 -> 12 s (0.981 / 0.756 / 0.053 -> 0.981 / 0.761 / 0.053),
+    # camera 1 29 -> 8 s (0.903 / 0.431 / 0.288 -> 0.910 / 0.436 / 0.287), camera 0 23 -> 6 s (0.776 / 0.359 /
+    # 0.495 -> 0.780 / 0.355 / 0.495). Before the fine registration, 2x2 bench, 3 sessions, camera seeds 0/1:
+    # 60/tile 0.280/0.334 m, 240/tile 0.171/0.243 m
+    align_incremental_iterations_per_tile: int = 0
     # incremental: a new submap's samples track a frozen tile only within this of the held submaps' surface
     # (at the starting poses: ~2 GPS sigma); elsewhere the frozen field holds no data (0: every sample)
     align_track_support_m: float = 3.0
@@ -391,6 +396,9 @@ class FusionConfig:
         if self.align_iterations_per_tile < 0:
             raise ValueError(f"align_iterations_per_tile must be >= 0 (0: registration only), "
                              f"got {self.align_iterations_per_tile}")
+        if self.align_incremental_iterations_per_tile < 0:
+            raise ValueError(f"align_incremental_iterations_per_tile must be >= 0 (0: registration only), "
+                             f"got {self.align_incremental_iterations_per_tile}")
         if not self.refusion_band_m >= 0:
             raise ValueError(f"refusion_band_m must be >= 0, got {self.refusion_band_m}")
         for option in ("consensus_movable", "thin_classes"):
@@ -435,7 +443,6 @@ class FusionConfig:
                 detail_m=1.5,  # a voxel and a half, as 0.4 m is of the cpu preset's 0.25 m
                 tile_margin_m=2.0,
                 align_iterations_per_tile=10,
-                align_incremental_iterations_per_tile=5,
                 # its alignment's 10 steps per tile leave too rough a field to start from: a warm third of
                 # the steps gave the add_session test's map geo F 0.30
                 recon_warm_fraction=0.0,

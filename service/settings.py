@@ -35,7 +35,7 @@ class Settings(BaseSettings):
     fusion_set: str = Field(
         default="",
         description="Overrides of the preset's FusionConfig fields, 'KEY=VALUE;KEY=VALUE' (as `fleetmap bench "
-        "--set`), e.g. 'realign_share=0.5;realign_iterations_fraction=0'; checked at start-up",
+        "--set`), e.g. 'realign_share=0.5;realign_iterations_fraction=0.5'; checked at start-up",
     )
     fusion_queue: str = "fusion"
     scheduler_interval_s: float = Field(default=5.0, gt=0)

@@ -221,9 +221,10 @@ def _fuse(ctx: BenchContext, keys: list[tuple[int, int]], fixed: dict[str, Pose]
 def _add_session(ctx: BenchContext, keys: list[tuple[int, int]], count: int = 1) -> dict[str, Any]:
     """The last ``count`` sessions arriving one after the other in a map the others were fused into (as the
     service runs it): the map before (every other session aligned from GPS, every tile reconstructed; not
-    timed), then for each arriving session, timed (``add_s``), its submaps aligned against the map's frozen
-    fields (its reconstructions', ``align_track_reconstruction``) with every earlier pose held
-    (``fusion.align``'s incremental mode) and the tiles their surface reaches at the aligned poses
+    timed), then for each arriving session, timed (``add_s``), its submaps aligned against the map with every
+    earlier pose held (``fusion.align``'s incremental mode: the registrations, and with
+    ``align_incremental_iterations_per_tile`` > 0 tracking against its frozen fields, its reconstructions'
+    with ``align_track_reconstruction``) and the tiles their surface reaches at the aligned poses
     (``refusion_band_m``) reconstructed again, each from its own field. Figures are those of the map after
     the last addition (``additions``: each one's times); compare ``add_s`` (the last addition's) with the
     ``fused`` row's ``wall_s`` (the full re-fusion of the same data)."""

@@ -9,9 +9,9 @@ from service.settings import Settings, fusion_config, get_settings
 
 
 def test_fusion_overrides_from_the_environment_apply_to_the_preset(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("FLEETMAP_FUSION_SET", "realign_share=0.5; realign_iterations_fraction=0;thin_classes=pole,fence")
+    monkeypatch.setenv("FLEETMAP_FUSION_SET", "realign_share=0.5; realign_iterations_fraction=0.5;thin_classes=pole,fence")
     config = fusion_config(Settings())
-    assert (config.realign_share, config.realign_iterations_fraction) == (0.5, 0.0)
+    assert (config.realign_share, config.realign_iterations_fraction) == (0.5, 0.5)
     assert config.thin_classes == ("pole", "fence")
     assert config.iterations == fusion_config(Settings(fusion_set="")).iterations  # the rest: the preset's
     tiny = fusion_config(Settings(fusion_preset="tiny", fusion_set="c_th=0.6"))
