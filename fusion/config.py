@@ -234,7 +234,8 @@ class FusionConfig:
     # from (the border is pinned by the neighbour it lies in). Exact seed 1, fifth session: 7 tiles touched
     # by GPS box, 4 by surface within 2 m (the others 0, 0 and 765 vertices within 8 m)
     refusion_band_m: float = 2.0
-    # an incremental alignment tracks new submaps against each tile's last reconstruction field where it has
+    # an incremental alignment with tracking steps (align_incremental_iterations_per_tile > 0; none by default)
+    # tracks new submaps against each tile's last reconstruction field where it has
     # one (trained on every submap held so far, the full schedule) rather than its alignment field (the
     # sessions of the tile's first alignment, a short schedule); false: always the alignment field
     align_track_reconstruction: bool = True
@@ -265,7 +266,7 @@ class FusionConfig:
     # 0.495 -> 0.780 / 0.355 / 0.495). Before the fine registration, 2x2 bench, 3 sessions, camera seeds 0/1:
     # 60/tile 0.280/0.334 m, 240/tile 0.171/0.243 m
     align_incremental_iterations_per_tile: int = 0
-    # incremental: a new submap's samples track a frozen tile only within this of the held submaps' surface
+    # incremental tracking: a new submap's samples track a frozen tile only within this of the held submaps' surface
     # (at the starting poses: ~2 GPS sigma); elsewhere the frozen field holds no data (0: every sample)
     align_track_support_m: float = 3.0
     # content-proportional schedule (fusion.schedule): a tile's steps, and its part of a region's alignment
