@@ -127,10 +127,11 @@ def align_region(
     origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
     poses, gps, coarse, drifts = _region_poses(subs, origin, config, dev)
     subs = [corrected_input(s, drifts.get(s.id)) for s in subs]  # the field sees each submap as corrected
-    per_tile = config.align_incremental_iterations_per_tile if frozen else config.align_iterations_per_tile
+    held = any((t.i, t.j) in frozen for t in tiles)  # a map is there: new submaps are added to it
+    per_tile = config.align_incremental_iterations_per_tile if held else config.align_iterations_per_tile
     if per_tile == 0:  # registration only: no field is trained (nor tracked against)
         return AlignResult(map_poses(poses, origin, subs), {}, drifts=drifts, metrics={
-            "losses": {}, "iterations": 0, "incremental": bool(frozen), "registration_only": True,
+            "losses": {}, "iterations": 0, "incremental": held, "registration_only": True,
             "duration_s": time.perf_counter() - t_start, "duration_train_s": 0.0, "device": str(dev),
             "num_submaps": len(subs), "num_free": int(sum(s.free for s in subs)), "num_tiles": len(tiles),
             "frozen_tiles": [], "skipped": {}, "coarse": coarse})

@@ -252,9 +252,9 @@ class FusionConfig:
     # registration stages do the same work either way). 0 (default since 2026-12-05, twenty-fifth session):
     # registration alone, no field trained, every tile re-fused from its own last reconstruction. add_sessions,
     # map after the fifth session's re-alignment (geo F / sem F / pose m) against the joint fusion of the same
-    # data: exact 0 0.983 / 0.821 / 0.094 vs 0.985 / 0.825 / 0.105, exact 1 0.981 / 0.761 / 0.053 vs 0.982 /
+    # data: exact 0 0.983 / 0.825 / 0.094 vs 0.985 / 0.812 / 0.104, exact 1 0.981 / 0.761 / 0.053 vs 0.982 /
     # 0.771 / 0.072, camera 1 0.910 / 0.436 / 0.287 vs 0.918 / 0.428 / 0.284, camera 0 0.780 / 0.355 / 0.495 vs
-    # 0.776 / 0.375 / 0.481; the re-alignment 29-41 % of a full fusion instead of 60-68 % with half the steps
+    # 0.776 / 0.375 / 0.481; the re-alignment 32-44 % of a full fusion instead of 60-68 % with half the steps
     # (0.5, the default before: exact 1 0.980 / 0.787 / 0.091, camera 1 0.901 / 0.390 / 0.282). README,
     # "Additions by registration alone". In the twentieth session the same setting lost exact 0 sem F 0.054.
     realign_iterations_fraction: float = 0.0
