@@ -302,6 +302,7 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     specs = [TileSpec(i, j, ctx.tile_size) for i, j in keys]
     result = align_region([replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=True) for s in submaps],
                           specs, cfg.for_realignment())
+    moved = _tile_moves(submaps, poses, result.poses, ctx.tile_size)
     poses |= result.poses
     drifts.clear()
     drifts |= result.drifts
@@ -309,7 +310,28 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
                               previous=None if result.fields else before, drifts=drifts)
     return fused, dict(result.fields), {
         "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused),
-        "refused": [list(k) for k in sorted(fused)], "alignment": result.metrics} | _recon_times(fused)
+        "refused": [list(k) for k in sorted(fused)], "alignment": result.metrics, "tile_moved_m": moved,
+    } | _recon_times(fused)
+
+
+def _tile_moves(submaps: list[LoadedSubmap], before: dict[str, Pose], after: dict[str, Pose], tile_size: float
+                ) -> dict[str, float | None]:
+    """Per tile ("i_j"): the farthest any held submap's vertex in it moved from ``before`` to ``after`` (m);
+    None where a submap new to the map (no ``before`` pose) has surface. What a re-alignment changed where."""
+    out: dict[str, float] = {}
+    for s in submaps:
+        v = np.asarray(s.input.mesh.vertices, np.float64)[::10]
+        new = after.get(s.input.id)
+        if new is None or not len(v):
+            continue
+        p1 = new.apply(v)
+        old = before.get(s.input.id)
+        d = np.linalg.norm(p1 - old.apply(v), axis=1) if old is not None else np.full(len(v), np.inf)
+        cells = np.floor(p1[:, :2] / tile_size).astype(np.int64)
+        for (i, j), dist in zip(map(tuple, cells), d, strict=True):
+            key = f"{i}_{j}"
+            out[key] = max(out.get(key, 0.0), float(dist))
+    return {k: v if np.isfinite(v) else None for k, v in out.items()}  # None: new data there
 
 
 def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, config: Any = None) -> dict[str, Any]:
