@@ -31,6 +31,7 @@ from fusion.types import FusedMesh, TileSpec
 SdfFn = Callable[[np.ndarray], np.ndarray]  # (n, 3) map-frame metres → (n,) signed distance
 AttrFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # (n, 3) → confidence (n,), label (n,)
 StepFn = Callable[[int, int], None]  # (done, total) progress
+NearFn = Callable[[np.ndarray, float], np.ndarray]  # block centres (n, 3) map frame, half diagonal m → (n,) bool
 
 
 @dataclass
@@ -64,6 +65,7 @@ def narrow_band_sdf(
     band_factor: float = 0.75,
     step: StepFn | None = None,
     strip_points: int = 1 << 22,
+    near: NearFn | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SDF volume (nx, ny, nz) float32 on the lattice and the mask of exactly evaluated points.
 
@@ -71,6 +73,12 @@ def narrow_band_sdf(
     values in the band), so no full-volume float64 temporaries or index arrays exist: at 128 m and
     0.1 m (~4e8 points) the peak is the float32 volume and the mask, not ~13 GB of intermediates.
     ``step(done, total)`` is called after the coarse pass and after each strip.
+
+    ``near(centres, half_diagonal_m)``: (n,) bool per band block (its centre, map frame), False where no
+    face the caller keeps can lie within the block; such blocks are left out of the band (filled like the
+    blocks outside it) unless they touch the tile's x or y border planes, which stay exact so the seam
+    values neighbours pin to are the same either way. Where the field is left untrained (beyond the data)
+    it sits near zero, and the band would otherwise cover almost the whole lattice.
     """
     b, v = block, lat.voxel_m
     c0 = [math.floor(lat.k0[a] / b) - (1 if a < 2 else 0) for a in range(3)]
@@ -92,6 +100,8 @@ def narrow_band_sdf(
         f = np.arange(lat.k0[a], lat.k1[a] + 1) - c0[a] * b
         first.append(np.minimum(f // b, band.shape[a] - 1))
         second.append(np.where(f % b == 0, np.maximum(f // b - 1, 0), first[a]))
+    if near is not None:
+        _restrict_band(band, near, c0, b * v, [np.concatenate([first[a][[0, -1]], second[a][[0, -1]]]) for a in (0, 1)])
     band_x = band[first[0]] | band[second[0]]  # (nx, cy, cz)
     band_xy = band_x[:, first[1]] | band_x[:, second[1]]  # (nx, ny, cz)
     # fill value of a point outside the band: the coarse SDF at its block's lower corner. Every block
@@ -121,6 +131,31 @@ def narrow_band_sdf(
         if step:
             step(1 + -(-xb // width), total)
     return vol, mask
+
+
+def _restrict_band(band: np.ndarray, near: NearFn, c0: list[int], block_m: float,
+                   border_blocks: list[np.ndarray]) -> None:
+    """``band`` (blocks) narrowed in place to the blocks ``near`` keeps and those holding a border plane's
+    points (``border_blocks``: their x and y block indices)."""
+    held = np.argwhere(band)
+    if not len(held):
+        return
+    keep = np.asarray(near((held + np.asarray(c0) + 0.5) * block_m, math.sqrt(3) / 2 * block_m), bool)
+    keep |= np.isin(held[:, 0], border_blocks[0]) | np.isin(held[:, 1], border_blocks[1])
+    drop = held[~keep]
+    band[drop[:, 0], drop[:, 1], drop[:, 2]] = False
+
+
+def near_support(tree: cKDTree, radius_m: float, voxel_m: float) -> NearFn:
+    """``narrow_band_sdf``'s ``near`` for ``supported_attrs``' rule: a block can hold a kept face only when
+    a support point lies within ``radius_m`` of one of the face's vertices, which lie on a lattice cube's
+    edges, so within a cube diagonal (plus a voxel of slack) of the block."""
+    reach = radius_m + (math.sqrt(3) + 1) * voxel_m
+
+    def fn(centres: np.ndarray, half_diagonal_m: float) -> np.ndarray:
+        return np.isfinite(tree.query(centres, k=1, distance_upper_bound=reach + half_diagonal_m)[0])
+
+    return fn
 
 
 def cube_mask(exact: np.ndarray) -> np.ndarray:
@@ -295,12 +330,12 @@ def _border_attrs(verts_idx: np.ndarray, lat: Lattice, border: dict[str, dict[st
     return seam
 
 
-def supported_attrs(attr_fn: AttrFn, support: np.ndarray, radius_m: float) -> AttrFn:
-    """``attr_fn`` with confidence 0 wherever no point of ``support`` (map frame, the posed input
-    surfaces) lies within ``radius_m``: the field is only trained near the data, and far from it (beyond
-    the space samples' boxes, or behind a hash collision) its confidence is whatever the grid makes of
-    it. A surface is reported only where some submap saw one; holes up to ~2 × ``radius_m`` are filled."""
-    tree = cKDTree(np.asarray(support, np.float64))
+def supported_attrs(attr_fn: AttrFn, tree: cKDTree, radius_m: float) -> AttrFn:
+    """``attr_fn`` with confidence 0 wherever no point of the support (``tree`` of map-frame points, the
+    posed input surfaces) lies within ``radius_m``: the field is only trained near the data, and far from
+    it (beyond the space samples' boxes, or behind a hash collision) its confidence is whatever the grid
+    makes of it. A surface is reported only where some submap saw one; holes up to ~2 × ``radius_m`` are
+    filled."""
 
     def fn(x_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         conf, labels = attr_fn(x_map)
@@ -504,14 +539,17 @@ def extract_mesh(
     uploads; with ``detail_m`` > 0 their faces farther than that from the field's surface, where it is
     confident, join the mesh as measured (``add_detail``).
     """
+    near = None
     if support is not None and support_m > 0:
-        attr_fn = supported_attrs(attr_fn, support, support_m)
+        tree = cKDTree(np.asarray(support, np.float64))
+        attr_fn = supported_attrs(attr_fn, tree, support_m)
+        near = near_support(tree, support_m, voxel_m)
     if face_labels not in ("vertices", "centroid", "vote"):
         raise ValueError(f"face_labels must be 'vertices', 'centroid' or 'vote', got {face_labels!r}")
     if face_labels == "vote" and (support is None or support_labels is None):
         raise ValueError("face_labels 'vote' needs support points and their labels")
     lat = tile_lattice(tile, *_with_pinned_heights(z_range, border_pins, voxel_m), voxel_m)
-    vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step)
+    vol, mask = narrow_band_sdf(sdf_fn, lat, block, band_factor, step=step, near=near)
     pinned_attrs: dict[str, dict[str, np.ndarray]] = {}
     pinned = apply_border_pins(vol, lat, border_pins, pinned_attrs, exact=mask) if border_pins else 0
     border = border_planes(vol, lat, attr_fn, pinned_attrs)

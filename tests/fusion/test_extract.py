@@ -200,6 +200,38 @@ def test_surface_far_from_every_input_point_is_dropped_and_seams_still_agree() -
     assert len(_seam(b, 8.0)) == 0  # the neighbour (confident everywhere itself) drops the seam too
 
 
+def test_band_skips_blocks_far_from_the_support_and_keeps_the_same_mesh(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beyond the data an untrained field sits near zero and crosses it everywhere (here: a small ripple
+    for x > 5 m): those blocks would all be in the narrow band. With support points only on x < 4 m, the
+    blocks farther from them than any kept face can reach are not evaluated, and the mesh (faces, labels,
+    confidence) and the seam planes are the ones the full band gives."""
+    xy = np.stack(np.meshgrid(np.arange(0.0, 4.0, 0.2), np.arange(0.0, 16.0, 0.2), indexing="ij"), -1).reshape(-1, 2)
+    support = np.column_stack([xy, np.zeros(len(xy))])
+    support[:, 2] = -wavy()(support)
+
+    def untrained_beyond(x: np.ndarray) -> np.ndarray:
+        ripple = 0.05 * np.sin(3 * x[:, 0]) * np.sin(3 * x[:, 1]) * np.sin(3 * x[:, 2])
+        return np.where(x[:, 0] < 5.0, wavy()(x), ripple)
+
+    def run() -> tuple:
+        return extract_mesh(untrained_beyond, confident, TileSpec(0, 0, 16.0), (-1.0, 3.0), 0.25,
+                            support=support, support_m=1.0)
+
+    mesh, border, stats = run()
+    import fusion.extract as ex
+
+    monkeypatch.setattr(ex, "near_support", lambda tree, radius_m, voxel_m: lambda c, h: np.ones(len(c), bool))
+    full_mesh, full_border, full_stats = run()
+    assert stats["band_points"] < 0.7 * full_stats["band_points"]  # the border planes' blocks stay
+    assert stats["raw_faces"] < full_stats["raw_faces"]
+    assert len(mesh.faces) > 100 and mesh.vertices[:, 0].max() < 4.0 + 1.0 + 0.25
+    for name in ("vertices", "faces", "vertex_labels", "vertex_confidence", "face_labels"):
+        assert np.array_equal(getattr(mesh, name), getattr(full_mesh, name)), name
+    for plane in border:
+        for key in border[plane]:
+            assert np.array_equal(np.asarray(border[plane][key]), np.asarray(full_border[plane][key]), equal_nan=True)
+
+
 def test_pinned_border_outside_our_own_band_still_meets_the_neighbour() -> None:
     """Tile B's field has no surface near the shared border (its coarse pass puts the plane outside its
     narrow band), tile A's has one: with A's pins B still places every seam vertex A has."""
