@@ -402,12 +402,16 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, e
     return np.concatenate([v, np.einsum("qk,mkd->mqd", w, tri).reshape(-1, 3)])
 
 
-def detail_faces(surface: np.ndarray, vertices: np.ndarray, faces: np.ndarray, tile: TileSpec,
-                 z_range: tuple[float, float], gap_m: float) -> np.ndarray:
+def detail_faces(mesh_vertices: np.ndarray, mesh_faces: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                 tile: TileSpec, z_range: tuple[float, float], gap_m: float, voxel_m: float) -> np.ndarray:
     """Indices of the ``faces`` (of the posed uploads, map frame) whose centre lies in ``tile`` (x, y in
-    [min, max), z in ``z_range``) and farther than ``gap_m`` from every ``surface`` point (the field's mesh,
-    ``surface_samples``): what the uploads saw and the field did not reconstruct. Each face belongs to the
-    one tile its centre lies in, so neighbouring tiles never both take it."""
+    [min, max), z in ``z_range``) and farther than ``gap_m`` from the field's mesh (``mesh_vertices``,
+    ``mesh_faces``; its ``surface_samples`` at a third of the gap): what the uploads saw and the field did not
+    reconstruct. Each face belongs to the one tile its centre lies in, so neighbouring tiles never both take it.
+
+    A centre with a mesh vertex within the gap is near (vertices are samples); only for the others are the
+    samples of the mesh faces within reach drawn (a face's points lie within its longest edge of its
+    vertices), so the dense samples of the whole mesh are never built."""
     if not len(faces):
         return np.zeros(0, np.int64)
     centres = np.asarray(vertices, np.float64)[faces].mean(axis=1)
@@ -415,10 +419,20 @@ def detail_faces(surface: np.ndarray, vertices: np.ndarray, faces: np.ndarray, t
     inside = np.flatnonzero((centres[:, 0] >= x0) & (centres[:, 0] < x0 + size) & (centres[:, 1] >= y0)
                             & (centres[:, 1] < y0 + size) & (centres[:, 2] >= z_range[0])
                             & (centres[:, 2] <= z_range[1]))
-    if not len(inside) or not len(surface):
+    mv = np.asarray(mesh_vertices, np.float64)
+    if not len(inside) or not len(mv):
         return inside
-    dist, _ = cKDTree(surface).query(centres[inside], distance_upper_bound=gap_m)
-    return inside[~np.isfinite(dist)]
+    far = ~np.isfinite(cKDTree(mv).query(centres[inside], distance_upper_bound=gap_m)[0])
+    open_ = inside[far]
+    if not len(open_) or not len(mesh_faces):
+        return open_
+    tri = mv[mesh_faces]
+    longest = float(np.sqrt(((tri - np.roll(tri, 1, axis=1)) ** 2).sum(axis=2).max()))
+    reach = np.isfinite(cKDTree(centres[open_]).query(mv, distance_upper_bound=gap_m + longest)[0])
+    near_faces = mesh_faces[reach[mesh_faces].any(axis=1)]
+    surface = surface_samples(mv, near_faces, gap_m / 3, voxel_m * math.sqrt(2))
+    dist, _ = cKDTree(surface).query(centres[open_], distance_upper_bound=gap_m)
+    return open_[~np.isfinite(dist)]
 
 
 def add_detail(
@@ -435,8 +449,7 @@ def add_detail(
     (``face_labels`` "centroid" / "vote"), else the majority of its vertices' head labels. Returns the
     vertices, faces, confidence, vertex and face labels, and the number of faces added."""
     dv, df = np.asarray(detail[0], np.float64), np.asarray(detail[1], np.int64)
-    surface = surface_samples(verts, faces, gap_m / 3, voxel_m * math.sqrt(2))
-    chosen = df[detail_faces(surface, dv, df, tile, z_range, gap_m)]
+    chosen = df[detail_faces(verts, faces, dv, df, tile, z_range, gap_m, voxel_m)]
     if not len(chosen):
         return verts, faces, conf, vertex_labels, face_labels, 0
     used, inverse = np.unique(chosen, return_inverse=True)

@@ -89,27 +89,36 @@ def sample_surface_pool(
     Class-balanced sampling: a face's weight is its area times ``class_weights`` of its label (rare
     classes, by the submaps' own labelled area, drawn more often), so thin or small classes (lane
     markings, signs, poles) get enough samples for the semantic head and the SDF; ``class_balance`` 0
-    is plain area weighting.
+    is plain area weighting. Faces whose posed bounding box misses the tile box are left out before
+    drawing (a submap reaches 2-4 tiles, so most of its faces lie in another); the draw is conditioned on
+    the box either way, so the distribution is the same.
     """
     areas, normals, tris, tris_tile, labels, owner = [], [], [], [], [], []
+    all_labels, all_areas = [], []
     for k, sm in enumerate(submaps):
         a, n = face_geometry(sm.mesh.vertices, sm.mesh.faces)
-        keep = a > 0
+        all_labels.append(sm.mesh.face_labels)
+        all_areas.append(a)
+        # the triangles posed in the tile frame: a point's tile position is the same barycentric
+        # combination, so no per-point pose matrices are gathered
+        posed = sm.mesh.vertices @ init_tile[k][:3, :3].T + init_tile[k][:3, 3]
+        tri_tile = posed[sm.mesh.faces]
+        keep = np.flatnonzero((a > 0) & np.all(tri_tile.min(axis=1) <= box_hi, axis=1)
+                              & np.all(tri_tile.max(axis=1) >= box_lo, axis=1))
         areas.append(a[keep])
         normals.append(n[keep])
-        tri = sm.mesh.vertices[sm.mesh.faces[keep]]
-        tris.append(tri.astype(np.float32))
-        # the same triangles posed in the tile frame: a point's tile position is the same barycentric
-        # combination, so no per-point pose matrices are gathered
-        tris_tile.append((tri @ init_tile[k][:3, :3].T + init_tile[k][:3, 3]).astype(np.float32))
+        tris.append(sm.mesh.vertices[sm.mesh.faces[keep]].astype(np.float32))
+        tris_tile.append(tri_tile[keep].astype(np.float32))
         labels.append(sm.mesh.face_labels[keep])
-        owner.append(np.full(int(keep.sum()), k))
-    area = np.concatenate(areas)
+        owner.append(np.full(len(keep), k))
+    area = np.concatenate(areas) if areas else np.zeros(0)
     if area.size == 0 or area.sum() <= 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
     tri_all, tri_tile, nrm_all = np.concatenate(tris), np.concatenate(tris_tile), np.concatenate(normals)
     lab_all, own_all = np.concatenate(labels), np.concatenate(owner)
-    weight = area * class_weights(lab_all, area, class_balance, class_weight_max)[lab_all]
+    # class shares from the whole submaps, as before the crop (a tile's own mix would re-weight per tile)
+    per_class = class_weights(np.concatenate(all_labels), np.concatenate(all_areas), class_balance, class_weight_max)
+    weight = area * per_class[lab_all]
     cdf = np.cumsum(weight)
 
     def draw(count: int) -> tuple[np.ndarray, ...]:

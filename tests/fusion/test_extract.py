@@ -411,3 +411,27 @@ def test_upload_detail_joins_a_tile_where_the_field_left_no_surface() -> None:
     assert len(empty.faces) == 0
     assert stats["detail_faces"] == len(mesh.faces) == 8 and np.all(mesh.face_labels == 7)
     assert np.allclose(np.sort(mesh.vertices, axis=0), np.sort(detail[0].astype(np.float32), axis=0))
+
+
+def test_detail_faces_are_those_farther_than_the_gap_from_the_dense_surface_samples() -> None:
+    """The upload faces ``detail_faces`` picks are exactly those whose centre has no sample of the field's
+    whole mesh (``surface_samples`` at a third of the gap) within the gap, though it samples only the mesh
+    faces within reach of centres with no mesh vertex that close."""
+    from scipy.spatial import cKDTree
+
+    from fusion.extract import detail_faces, surface_samples
+
+    mesh, _, _ = extract_mesh(wavy(), confident, TileSpec(0, 0, 8.0), (-1.0, 3.0), 0.25)
+    v, f = mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64)
+    rng = np.random.default_rng(3)
+    centres = np.column_stack([rng.uniform(0, 8, 3000), rng.uniform(0, 8, 3000), np.zeros(3000)])
+    centres[:, 2] = -wavy()(np.column_stack([centres[:, :2], np.zeros(3000)])) + rng.uniform(-0.8, 0.8, 3000)
+    tiny = np.array([[0.0, 0, 0], [0.02, 0, 0], [0, 0.02, 0]])
+    up_v = (centres[:, None, :] + tiny).reshape(-1, 3)
+    up_f = np.arange(len(up_v)).reshape(-1, 3)
+    got = detail_faces(v, f, up_v, up_f, TileSpec(0, 0, 8.0), (-1.0, 3.0), 0.4, 0.25)
+    c = up_v[up_f].mean(axis=1)
+    dense = cKDTree(surface_samples(v, f, 0.4 / 3, 0.25 * np.sqrt(2))).query(c, distance_upper_bound=0.4)[0]
+    inside = (c[:, 0] < 8.0) & (c[:, 1] < 8.0)
+    want = np.flatnonzero(inside & ~np.isfinite(dense))
+    assert 100 < len(want) < 2500 and np.array_equal(np.sort(got), want)

@@ -296,3 +296,19 @@ def test_surface_pool_is_area_weighted_inside_the_box_and_exactly_sized() -> Non
     assert abs((own == 0).mean() - 2 / 3) < 0.02
     # uniform over the inside area: the big square's kept half splits evenly in x
     assert abs((pts[own == 0, 0] < 2.0).mean() - 0.5) < 0.02
+
+
+def test_class_balance_weighs_by_the_whole_submaps_not_the_part_in_the_box() -> None:
+    # a 4 m square of class 1 (half of it in the box) and a 2 m square of class 2 (all in): by the submaps'
+    # own areas (16 / 4 m²) class 2's share is 0.2 and its weight (0.5 / 0.2) = 2.5, so the pool holds
+    # 4 · 2.5 : 8 of classes 2 : 1 (0.556 of the points); the in-box areas alone (8 / 4) would give 0.43
+    small_pose = np.eye(4)
+    small_pose[0, 3] = -3.0
+    submaps = [
+        SubmapInput("a", "s", 0, _square(4.0, 1), Pose.identity(), Pose.identity()),
+        SubmapInput("b", "s", 1, _square(2.0, 2), Pose.from_matrix(small_pose), Pose.identity()),
+    ]
+    lo, hi = np.array([-5.0, -1.0, -1.0]), np.array([2.0, 5.0, 1.0])
+    _, _, lab, _ = sample_surface_pool(submaps, [np.eye(4), small_pose], lo, hi, 40_000, np.random.default_rng(1),
+                                       class_balance=1.0, class_weight_max=4.0)
+    assert abs((lab == 2).mean() - 10 / 18) < 0.015
