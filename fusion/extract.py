@@ -66,6 +66,7 @@ def narrow_band_sdf(
     step: StepFn | None = None,
     strip_points: int = 1 << 22,
     near: NearFn | None = None,
+    refine: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SDF volume (nx, ny, nz) float32 on the lattice and the mask of exactly evaluated points.
 
@@ -74,11 +75,16 @@ def narrow_band_sdf(
     0.1 m (~4e8 points) the peak is the float32 volume and the mask, not ~13 GB of intermediates.
     ``step(done, total)`` is called after the coarse pass and after each strip.
 
+    ``refine``: while the block size is even and above 2, the band is taken again on half blocks (the
+    corners of the half blocks inside band blocks are evaluated; ``_refine``), so the exact points are those
+    of the half blocks near the surface rather than of every point of a band block (a 4-voxel block's band
+    is three blocks thick around a surface: ~12 voxels of points, ~6 after one halving).
+
     ``near(centres, half_diagonal_m)``: (n,) bool per band block (its centre, map frame), False where no
     face the caller keeps can lie within the block; such blocks are left out of the band (filled like the
-    blocks outside it) unless they touch the tile's x or y border planes, which stay exact so the seam
-    values neighbours pin to are the same either way. Where the field is left untrained (beyond the data)
-    it sits near zero, and the band would otherwise cover almost the whole lattice.
+    blocks outside it, their half blocks too) unless they touch the tile's x or y border planes, which stay
+    exact so the seam values neighbours pin to are the same either way. Where the field is left untrained
+    (beyond the data) it sits near zero, and the band would otherwise cover almost the whole lattice.
     """
     b, v = block, lat.voxel_m
     c0 = [math.floor(lat.k0[a] / b) - (1 if a < 2 else 0) for a in range(3)]
@@ -86,22 +92,25 @@ def narrow_band_sdf(
     axes = [np.arange(c0[a], c1[a] + 1) * b for a in range(3)]
     ck = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     coarse = _eval(sdf_fn, ck, v).reshape(*(len(ax) for ax in axes))
-    # band blocks: a corner close to the surface (|s| below the block diagonal) or a sign change
-    corners = [coarse[dx : coarse.shape[0] - 1 + dx, dy : coarse.shape[1] - 1 + dy, dz : coarse.shape[2] - 1 + dz]
-               for dx, dy, dz in itertools.product((0, 1), repeat=3)]
-    cs = np.stack(corners)
-    thr = band_factor * math.sqrt(3) * b * v
-    band = (np.abs(cs).min(0) < thr) | ((cs > 0).any(0) & (cs < 0).any(0))
+    band = _band(coarse, band_factor * math.sqrt(3) * b * v)
+    dropped = None
+    if near is not None:
+        border = [_containing(np.array([lat.k0[a], lat.k1[a]]) - c0[a] * b, b, band.shape[a]) for a in (0, 1)]
+        dropped = _far_blocks(band, near, c0, b * v, [np.concatenate(pair) for pair in border])
+        band &= ~dropped
+    # halve the blocks while they are even: the corners of the half blocks inside band blocks are evaluated,
+    # the band is taken again on them, and only the half blocks in it are evaluated at every lattice point
+    # (half blocks of a block ``near`` dropped stay out: their filled corners are not one-signed)
+    while refine and b % 2 == 0 and b > 2:
+        coarse, band, c0, b = _refine(sdf_fn, coarse, band, c0, b, v, band_factor)
+        if dropped is not None:
+            dropped = dropped.repeat(2, axis=0).repeat(2, axis=1).repeat(2, axis=2)
+            band &= ~dropped
     # a fine point is exact when any block containing it is in the band: per axis, the block holding
     # it ("first") and, on a block boundary, the block below ("second"); the OR over the 8 choices is
     # separable, so it is taken one axis at a time (x, y on the small coarse arrays, z per strip)
-    first, second = [], []
-    for a in range(3):
-        f = np.arange(lat.k0[a], lat.k1[a] + 1) - c0[a] * b
-        first.append(np.minimum(f // b, band.shape[a] - 1))
-        second.append(np.where(f % b == 0, np.maximum(f // b - 1, 0), first[a]))
-    if near is not None:
-        _restrict_band(band, near, c0, b * v, [np.concatenate([first[a][[0, -1]], second[a][[0, -1]]]) for a in (0, 1)])
+    first, second = zip(*(_containing(np.arange(lat.k0[a], lat.k1[a] + 1) - c0[a] * b, b, band.shape[a])
+                          for a in range(3)), strict=True)
     band_x = band[first[0]] | band[second[0]]  # (nx, cy, cz)
     band_xy = band_x[:, first[1]] | band_x[:, second[1]]  # (nx, ny, cz)
     # fill value of a point outside the band: the coarse SDF at its block's lower corner. Every block
@@ -133,17 +142,55 @@ def narrow_band_sdf(
     return vol, mask
 
 
-def _restrict_band(band: np.ndarray, near: NearFn, c0: list[int], block_m: float,
-                   border_blocks: list[np.ndarray]) -> None:
-    """``band`` (blocks) narrowed in place to the blocks ``near`` keeps and those holding a border plane's
+def _band(coarse: np.ndarray, thr: float) -> np.ndarray:
+    """Band blocks of a block-corner grid of SDF values: a corner closer to the surface than ``thr`` or a
+    sign change among the block's corners."""
+    cs = np.stack([coarse[dx : coarse.shape[0] - 1 + dx, dy : coarse.shape[1] - 1 + dy, dz : coarse.shape[2] - 1 + dz]
+                   for dx, dy, dz in itertools.product((0, 1), repeat=3)])
+    return (np.abs(cs).min(0) < thr) | ((cs > 0).any(0) & (cs < 0).any(0))
+
+
+def _containing(offsets: np.ndarray, b: int, blocks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per point (``offsets`` from the first block's lower corner, in lattice steps, along one axis) the
+    block holding it and, on a block boundary, the block below (else the same block), clipped to ``blocks``."""
+    first = np.minimum(offsets // b, blocks - 1)
+    return first, np.where(offsets % b == 0, np.maximum(offsets // b - 1, 0), first)
+
+
+def _refine(sdf_fn: SdfFn, coarse: np.ndarray, band: np.ndarray, c0: list[int], b: int, v: float,
+            band_factor: float) -> tuple[np.ndarray, np.ndarray, list[int], int]:
+    """The block-corner grid and band at half the block size: corners of half blocks in a band block are
+    evaluated, the others take the coarse value at their block's lower corner (every block holding them is
+    outside the band: one sign, |s| at least the band threshold, which is above the half blocks' own)."""
+    h = b // 2
+    first, second = zip(*(_containing(np.arange(2 * band.shape[a] + 1), 2, band.shape[a]) for a in range(3)),
+                        strict=True)
+    needed = band[first[0]] | band[second[0]]
+    needed = needed[:, first[1]] | needed[:, second[1]]
+    needed = needed[:, :, first[2]] | needed[:, :, second[2]]
+    lower = [np.minimum(np.arange(2 * band.shape[a] + 1) // 2, coarse.shape[a] - 1) for a in range(3)]
+    fine = coarse[lower[0]][:, lower[1]][:, :, lower[2]]
+    # the even points are the coarse corners themselves
+    needed[::2, ::2, ::2] = False
+    where = np.argwhere(needed)
+    if len(where):
+        fine[needed] = _eval(sdf_fn, (where + 2 * np.asarray(c0)) * h, v)
+    return fine, _band(fine, band_factor * math.sqrt(3) * h * v), [2 * c for c in c0], h
+
+
+def _far_blocks(band: np.ndarray, near: NearFn, c0: list[int], block_m: float,
+                border_blocks: list[np.ndarray]) -> np.ndarray:
+    """The band blocks (bool, ``band``'s shape) ``near`` rules out, except those holding a border plane's
     points (``border_blocks``: their x and y block indices)."""
+    far = np.zeros_like(band)
     held = np.argwhere(band)
     if not len(held):
-        return
+        return far
     keep = np.asarray(near((held + np.asarray(c0) + 0.5) * block_m, math.sqrt(3) / 2 * block_m), bool)
     keep |= np.isin(held[:, 0], border_blocks[0]) | np.isin(held[:, 1], border_blocks[1])
     drop = held[~keep]
-    band[drop[:, 0], drop[:, 1], drop[:, 2]] = False
+    far[drop[:, 0], drop[:, 1], drop[:, 2]] = True
+    return far
 
 
 def near_support(tree: cKDTree, radius_m: float, voxel_m: float) -> NearFn:
