@@ -208,7 +208,8 @@ def near_support(tree: cKDTree, radius_m: float, voxel_m: float) -> NearFn:
 def cube_mask(exact: np.ndarray) -> np.ndarray:
     """skimage's marching-cubes mask: True at ``p`` when the cube whose upper corner is ``p`` has an
     exactly evaluated corner. Cubes with no exact corner lie in blocks outside the band whose values are
-    filled with same-signed coarse values, so skipping them drops no surface."""
+    filled with same-signed coarse values, so skipping them drops no surface (or in blocks ``near`` left out,
+    whose faces would have no support)."""
     out = exact.copy()
     for dx, dy, dz in itertools.product((0, 1), repeat=3):
         if dx or dy or dz:
