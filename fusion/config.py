@@ -343,10 +343,12 @@ class FusionConfig:
     slab_pad_m: float = 2.0  # height slab = data z-range ± this
     slab_max_m: float = 40.0
     extract_voxel_m: float = 0.25
-    extract_block: int = 4  # coarse narrow-band block, in voxels
+    extract_block: int = 4  # coarse narrow-band block, in voxels (halved down to 2: fusion.extract.narrow_band_sdf)
     extract_band: float = 0.75  # refine blocks with a corner |s| below this × block diagonal (or a sign change)
     extract_chunk: int = 65536
-    extract_support_m: float = 1.0  # confidence 0 farther than this from every posed input point (0: off)
+    # confidence 0 farther than this from every posed input point (0: off); the narrow band also leaves out the
+    # blocks farther than this (+ a cube diagonal) from them, where the untrained field sits near zero
+    extract_support_m: float = 1.0
     # upload faces farther than this from the field's extracted surface, where the field is confident, join the
     # tile's mesh as measured (0: off; fusion.extract.add_detail): poles, signs and small obstacles the field
     # cannot hold (one-sided, smeared by depth error, mislabelled so not inflated) keep the uploads' surface.
