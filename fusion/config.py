@@ -343,7 +343,7 @@ class FusionConfig:
     slab_pad_m: float = 2.0  # height slab = data z-range ± this
     slab_max_m: float = 40.0
     extract_voxel_m: float = 0.25
-    extract_block: int = 4  # coarse narrow-band block, in voxels (halved down to 2: fusion.extract.narrow_band_sdf)
+    extract_block: int = 4  # coarse narrow-band block, in voxels (halved down to 2: fusion.band.narrow_band_sdf)
     extract_band: float = 0.75  # refine blocks with a corner |s| below this × block diagonal (or a sign change)
     extract_chunk: int = 65536
     # confidence 0 farther than this from every posed input point (0: off); the narrow band also leaves out the

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion.extract import extract_mesh, narrow_band_sdf, tile_lattice
+from fusion.band import narrow_band_sdf, tile_lattice
+from fusion.extract import extract_mesh
 from fusion.types import TileSpec
 
 CENTRE = np.array([4.0, 4.0, 3.0])
@@ -108,7 +109,7 @@ def test_band_limited_marching_cubes_equals_a_full_pass() -> None:
     full pass over the filled volume finds, on a scene with a thin pole and a sloped ground."""
     from skimage.measure import marching_cubes
 
-    from fusion.extract import cube_mask
+    from fusion.band import cube_mask
 
     def scene(x: np.ndarray) -> np.ndarray:
         ground = x[:, 2] - (0.5 + 0.1 * x[:, 0])
@@ -130,7 +131,7 @@ def test_half_blocks_evaluate_fewer_points_and_keep_every_triangle() -> None:
     on a scene with a thin pole, a sloped ground and a sphere, and marching cubes finds the same triangles."""
     from skimage.measure import marching_cubes
 
-    from fusion.extract import cube_mask
+    from fusion.band import cube_mask
 
     def scene(x: np.ndarray) -> np.ndarray:
         ground = x[:, 2] - (0.5 + 0.1 * x[:, 0])
