@@ -166,6 +166,22 @@ def test_surface_tiles_follow_the_posed_faces_not_the_box() -> None:
         surface_tiles(v, f, at, 64, band_m=-1.0)
 
 
+def test_surface_tiles_are_every_tile_some_face_box_meets() -> None:
+    # the definition face by face, on faces of all sizes scattered over negative and positive tiles
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(-150, 150, (400, 1, 3))
+    v = (centres + rng.normal(0, 1, (400, 3, 3)) * rng.choice([0.5, 5.0, 40.0], (400, 1, 1))).reshape(-1, 3)
+    f = np.arange(len(v)).reshape(-1, 3)
+    pose = Pose(np.array([3.0, -7.0, 1.0]), yaw(30))
+    xy = pose.apply(v)[:, :2][f]
+    for band in (0.0, 2.0):
+        lo = np.floor((xy.min(axis=1) - band) / 64).astype(int)
+        hi = np.floor((xy.max(axis=1) + band) / 64).astype(int)
+        want = {(i, j) for a, b in zip(lo, hi, strict=True)
+                for i in range(a[0], b[0] + 1) for j in range(a[1], b[1] + 1)}
+        assert surface_tiles(v, f, pose, 64, band_m=band) == sorted(want)
+
+
 def test_home_tile_of_posed_centre() -> None:
     mesh = SemanticMesh(
         vertices=np.array([[0.0, 0.0, 0.0], [10.0, 4.0, 1.0], [2.0, 2.0, 0.0]]),
