@@ -47,7 +47,7 @@ from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.reconstruct import TileProblem, build_problem, overlapping, set_consensus
 from fusion.register import fine_register
-from fusion.runtime import resolve_device
+from fusion.runtime import cpu_threads, resolve_device
 from fusion.sampling import SurfacePool, face_geometry, sample_batch
 from fusion.schedule import content_iterations, tile_content
 from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
@@ -299,7 +299,8 @@ def _held_field(problem: TileProblem, state: dict[str, torch.Tensor], config: Fu
         is_free = free.cpu().numpy()
         near = np.zeros(len(posed), bool)
         if not is_free.all():
-            dist, _ = cKDTree(posed[~is_free]).query(posed[is_free], distance_upper_bound=config.align_track_support_m)
+            dist, _ = cKDTree(posed[~is_free]).query(posed[is_free], distance_upper_bound=config.align_track_support_m,
+                                                          workers=cpu_threads())
             near[is_free] = np.isfinite(dist)
         keep &= torch.as_tensor(near, device=dev)
     problem.pool = SurfacePool(p.points[keep], p.normals[keep], p.labels[keep], p.submap[keep], p.conf_target[keep])

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fusion.runtime import cpu_threads
 from fusion.tiles import lattice_range
 from fusion.types import TileSpec
 
@@ -192,7 +193,8 @@ def near_support(tree: cKDTree, radius_m: float, voxel_m: float) -> NearFn:
     reach = radius_m + (math.sqrt(3) + 1) * voxel_m
 
     def fn(centres: np.ndarray, half_diagonal_m: float) -> np.ndarray:
-        return np.isfinite(tree.query(centres, k=1, distance_upper_bound=reach + half_diagonal_m)[0])
+        return np.isfinite(tree.query(centres, k=1, distance_upper_bound=reach + half_diagonal_m,
+                                      workers=cpu_threads())[0])
 
     return fn
 

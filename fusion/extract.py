@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from fusion.band import Lattice, SdfFn, StepFn, cube_mask, narrow_band_sdf, near_support, tile_lattice
+from fusion.runtime import cpu_threads
 from fusion.types import FusedMesh, TileSpec
 
 AttrFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # (n, 3) → confidence (n,), label (n,)
@@ -197,7 +198,7 @@ def supported_attrs(attr_fn: AttrFn, tree: cKDTree, radius_m: float) -> AttrFn:
 
     def fn(x_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         conf, labels = attr_fn(x_map)
-        far = ~np.isfinite(tree.query(x_map, k=1, distance_upper_bound=radius_m)[0])
+        far = ~np.isfinite(tree.query(x_map, k=1, distance_upper_bound=radius_m, workers=cpu_threads())[0])
         return np.where(far, 0.0, conf).astype(np.asarray(conf).dtype), labels
 
     return fn
@@ -209,7 +210,8 @@ def voted_labels(points: np.ndarray, head: np.ndarray, support: np.ndarray, supp
     (label 0, unlabelled, does not vote); ``head`` (the semantic head's label) where none votes.
     Ties go to the head's label when it is among them, else to the lowest id."""
     tree = cKDTree(np.asarray(support, np.float64))
-    dist, idx = tree.query(np.asarray(points, np.float64), k=k, distance_upper_bound=radius_m)
+    dist, idx = tree.query(np.asarray(points, np.float64), k=k, distance_upper_bound=radius_m,
+                           workers=cpu_threads())
     found = np.isfinite(dist)
     lab = np.where(found, np.asarray(support_labels)[np.minimum(idx, len(support) - 1)], 0)
     n_cls = int(max(lab.max(initial=0), np.asarray(head).max(initial=0))) + 1
@@ -280,16 +282,17 @@ def detail_faces(mesh_vertices: np.ndarray, mesh_faces: np.ndarray, vertices: np
     mv = np.asarray(mesh_vertices, np.float64)
     if not len(inside) or not len(mv):
         return inside
-    far = ~np.isfinite(cKDTree(mv).query(centres[inside], distance_upper_bound=gap_m)[0])
+    far = ~np.isfinite(cKDTree(mv).query(centres[inside], distance_upper_bound=gap_m, workers=cpu_threads())[0])
     open_ = inside[far]
     if not len(open_) or not len(mesh_faces):
         return open_
     tri = mv[mesh_faces]
     longest = float(np.sqrt(((tri - np.roll(tri, 1, axis=1)) ** 2).sum(axis=2).max()))
-    reach = np.isfinite(cKDTree(centres[open_]).query(mv, distance_upper_bound=gap_m + longest)[0])
+    reach = np.isfinite(cKDTree(centres[open_]).query(mv, distance_upper_bound=gap_m + longest,
+                                                   workers=cpu_threads())[0])
     near_faces = mesh_faces[reach[mesh_faces].any(axis=1)]
     surface = surface_samples(mv, near_faces, gap_m / 3, voxel_m * math.sqrt(2))
-    dist, _ = cKDTree(surface).query(centres[open_], distance_upper_bound=gap_m)
+    dist, _ = cKDTree(surface).query(centres[open_], distance_upper_bound=gap_m, workers=cpu_threads())
     return open_[~np.isfinite(dist)]
 
 

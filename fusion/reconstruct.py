@@ -24,7 +24,7 @@ from fusion.extract import extract_mesh
 from fusion.field import SemanticSDFField, field_from_state, field_state
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
-from fusion.runtime import resolve_device
+from fusion.runtime import cpu_threads, resolve_device
 from fusion.sampling import (
     SpaceBoxes,
     SurfacePool,
@@ -341,21 +341,26 @@ def _posed_uploads(problem: TileProblem, kept_above: float | None = None, tile: 
     pool_pts = problem.pool.points.cpu().numpy()
     pool_sub = problem.pool.submap.cpu().numpy()
     pool_conf = problem.pool.conf_target.cpu().numpy()
+    order = np.argsort(pool_sub, kind="stable")  # each submap's pool points, in pool order, as one slice
+    bounds = np.searchsorted(pool_sub[order], np.arange(len(problem.submaps) + 1))
     verts, faces, offset = [], [], 0
     for k, (sm, pose) in enumerate(zip(problem.submaps, poses, strict=True)):
         v = np.asarray(sm.mesh.vertices, np.float64)
         f = np.asarray(sm.mesh.faces, np.int64)
         posed = v @ pose[:3, :3].T + pose[:3, 3] + problem.origin
+        centre = (v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / 3  # local frame (the pool's)
         if tile is not None and len(f):
-            c = posed[f].mean(axis=1)
+            c = centre @ pose[:3, :3].T + pose[:3, 3] + problem.origin
             (x0, y0), size = tile.xy_min, tile.size_m
-            f = f[(c[:, 0] >= x0) & (c[:, 0] < x0 + size) & (c[:, 1] >= y0) & (c[:, 1] < y0 + size)]
+            inside = (c[:, 0] >= x0) & (c[:, 0] < x0 + size) & (c[:, 1] >= y0) & (c[:, 1] < y0 + size)
+            f, centre = f[inside], centre[inside]
         if kept_above is not None and len(f):
-            own = pool_sub == k
-            if own.any():
-                dist, idx = cKDTree(pool_pts[own]).query(v[f].mean(axis=1), k=4, distance_upper_bound=KEPT_RADIUS_M)
+            own = order[bounds[k]:bounds[k + 1]]
+            if len(own):
+                dist, idx = cKDTree(pool_pts[own]).query(centre, k=4, distance_upper_bound=KEPT_RADIUS_M,
+                                                                   workers=cpu_threads())
                 found = np.isfinite(dist)
-                conf = np.where(found, pool_conf[own][np.minimum(idx, own.sum() - 1)], 0.0)
+                conf = np.where(found, pool_conf[own][np.minimum(idx, len(own) - 1)], 0.0)
                 mean = conf.sum(axis=1) / np.maximum(found.sum(axis=1), 1)
                 f = f[found.any(axis=1) & (mean >= kept_above)]
             else:

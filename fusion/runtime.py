@@ -48,6 +48,12 @@ def tune_allocator() -> bool:
     return _tuned
 
 
+def cpu_threads() -> int:
+    """Threads for the fusion's CPU-side work beside torch (scipy k-d tree queries): torch's intra-op count,
+    so a worker's ``FLEETMAP_TORCH_THREADS`` bounds both."""
+    return max(1, torch.get_num_threads())
+
+
 def resolve_device(name: str | None) -> torch.device:
     """``"auto"``/None → CUDA when available, else CPU."""
     if name in (None, "auto"):
