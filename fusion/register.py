@@ -56,7 +56,6 @@ from fusion.config import FusionConfig
 from fusion.drift_fit import Matches, corrected_samples, drift_step
 from fusion.losses import gps_prior_loss, odometry_loss, pose_residual
 from fusion.poses import PoseSet
-from fusion.runtime import cpu_threads
 from fusion.sampling import face_geometry, on_triangles, transform, uniform_barycentric
 from fusion.training import PoseTerms
 from fusion.types import SubmapInput
@@ -558,7 +557,7 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
                 if within is None:
                     continue
                 query = within[mine]
-            dist, idx = trees[j].query(posed[mine], k=k, distance_upper_bound=radius, workers=cpu_threads())
+            dist, idx = trees[j].query(posed[mine], k=k, distance_upper_bound=radius)
             valid = np.isfinite(dist) & query[:, None]
             cand = members[j][np.where(valid, idx, 0)]
             valid &= np.einsum("nkd,nd->nk", normals[cand], normals[mine]) >= min_dot
