@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.register import _correspondences, _own_gains, fine_register, match_radii, surface_samples
+from fusion.register import _correspondences, _HeldPairs, _own_gains, fine_register, match_radii, surface_samples
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
@@ -112,6 +112,27 @@ def test_correspondences_within_a_group_only_for_the_samples_let_through() -> No
     walls = np.abs(normals[:, 2]) < 0.7
     src, dst = _correspondences(posed, normals, owner, radius=0.5, min_dot=0.7, group=group, within=walls)
     assert dict(zip(src.tolist(), dst.tolist(), strict=True)) == {1: 3, 3: 1}
+
+
+def test_held_pairs_kept_over_the_rounds_give_the_matches_of_a_fresh_query() -> None:
+    # six submaps of noisy samples over one patch, four held: over shrinking radii (and one wider again) the
+    # matches with the held pairs' queries kept are those of fresh queries, in both passes; fewer queries
+    rng = np.random.default_rng(5)
+    owner = np.repeat(np.arange(6), 300)
+    posed = rng.uniform(0, 4, (len(owner), 3)) * [1, 1, 0.2]
+    normals = rng.normal(0, 0.3, (len(owner), 3)) + [0, 0, 1]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    group = np.array([0, 0, 1, 1, 2, 2])
+    held = _HeldPairs(np.array([True, True, True, True, False, False]))
+    for radius in (1.0, 0.5, 0.3, 0.3, 0.12, 0.6):
+        for same in (False, True):
+            fresh = _correspondences(posed, normals, owner, radius, 0.7, group, same=same)
+            kept = _correspondences(posed, normals, owner, radius, 0.7, group, same=same, held=held)
+            assert len(fresh[0]) > 0
+            np.testing.assert_array_equal(kept[0], fresh[0])
+            np.testing.assert_array_equal(kept[1], fresh[1])
+    assert set(held.best) == {(i, j, same) for same in (False, True) for i in range(4) for j in range(4)
+                              if i != j and (group[i] == group[j]) == same}
 
 
 def test_the_alignment_start_runs_it_after_the_coarse_stage_and_the_switch_turns_it_off() -> None:
