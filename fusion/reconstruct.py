@@ -276,6 +276,11 @@ def _train(
     terms_of_poses = PoseTerms.of(problem.submaps, problem.lo.device)
     optimiser = Optimiser(list(field.parameters()), problem.poses, config, config.iterations, config.pose_warmup)
     consensus = consensus_iterations(config, config.iterations)
+    if consensus and not any(sm.free for sm in problem.submaps):
+        # every pose held (the service's reconstructions): the targets, a function of the poses, are final
+        # before the first step; recomputing them later gave the same, and until then the field learned a
+        # confidence of 1 everywhere (transients included) that the targets then took back
+        consensus = {0}
     report = Reporter(progress, config.iterations, "train")
     evaluated = 0
     for it in range(config.iterations):

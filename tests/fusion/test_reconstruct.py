@@ -53,6 +53,40 @@ def test_fixed_submaps_hold_and_are_not_returned() -> None:
     assert set(res.poses) == {"b"}
 
 
+def test_held_poses_get_their_consensus_targets_before_the_first_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the targets are a function of the poses: with every pose held they are final from the start (not a
+    # target of 1 everywhere until consensus_at's first fraction); a free pose gets them recomputed as it moves
+    import fusion.reconstruct as rec
+
+    steps: list[int] = []
+    real = rec.update_consensus
+
+    def spy(problem: object, config: FusionConfig) -> float:
+        steps.append(len(calls))
+        return real(problem, config)  # type: ignore[arg-type]
+
+    calls: list[int] = []
+    real_losses = rec.field_losses
+
+    def count(*args: object, **kwargs: object):  # noqa: ANN202
+        calls.append(1)
+        return real_losses(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(rec, "update_consensus", spy)
+    monkeypatch.setattr(rec, "field_losses", count)
+    cfg = tiny_config(iterations=20, consensus=True, consensus_at=(0.4, 0.7))
+    subs, _ = two_sessions()
+    for s in subs:
+        s.free = False
+    held = reconstruct_tile(subs, TILE, cfg)
+    assert steps == [0] and held.metrics["mean_conf_target"] < 1.0
+    steps.clear()
+    calls.clear()
+    subs[1].free = True
+    reconstruct_tile(subs, TILE, cfg)
+    assert steps == [8, 14]
+
+
 def test_deterministic_under_seed() -> None:
     subs, _ = two_sessions()
     cfg = tiny_config(iterations=12)

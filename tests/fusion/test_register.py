@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.register import _correspondences, _HeldPairs, _own_gains, fine_register, match_radii, surface_samples
+from fusion.register import (
+    _correspondences,
+    _HeldPairs,
+    _own_gains,
+    fine_register,
+    match_radii,
+    surface_samples,
+)
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
