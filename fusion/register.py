@@ -56,10 +56,14 @@ from fusion.config import FusionConfig
 from fusion.drift_fit import Matches, corrected_samples, drift_step
 from fusion.losses import gps_prior_loss, odometry_loss, pose_residual
 from fusion.poses import PoseSet
+from fusion.runtime import cpu_threads
 from fusion.sampling import face_geometry, on_triangles, transform, uniform_barycentric
 from fusion.training import PoseTerms
 from fusion.types import SubmapInput
 
+# a k-d query of this many points or more runs on every thread (fusion.runtime.cpu_threads): one of a
+# submap's 2000 samples ran slower on two threads (thread start-up)
+PARALLEL_QUERY_POINTS = 10_000
 UPRIGHT_NZ = 0.7  # a face whose local normal is within ~45° of +z is ground-like (fixes height and tilt only)
 
 
@@ -555,20 +559,22 @@ class _HeldPairs:
             self.trees[i] = cKDTree(points)
         return self.trees[i]
 
-    def nearest(self, i: int, j: int, same: bool, radius: float, find: Callable[[], tuple[np.ndarray, np.ndarray]]
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """``find()`` (per sample of ``i``: distance and index of its match in ``j`` within ``radius``, inf
-        where none), kept where submaps ``i`` and ``j`` are held and reused at radii no wider; ``same``: the
-        own-session pass's (its masks differ)."""
+    def kept(self, i: int, j: int, same: bool, radius: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per sample of ``i``: distance and index of its match in ``j`` within ``radius`` (inf where none),
+        from a query at a radius no narrower, where both are held; else None (query and :meth:`keep` it).
+        ``same``: the own-session pass's (its masks differ)."""
         if not (self.held[i] and self.held[j]):
-            return find()
+            return None
         hit = self.best.get((i, j, same))
         if hit is None or hit[0] < radius:
-            dist, match = find()
-            self.best[(i, j, same)] = (radius, dist, match)
-            return dist, match
+            return None
         wider, dist, match = hit
         return (dist, match) if wider == radius else (np.where(dist < radius, dist, np.inf), match)
+
+    def keep(self, i: int, j: int, same: bool, radius: float, dist: np.ndarray, match: np.ndarray) -> None:
+        """Keep a fresh query's matches of a held pair (see :meth:`kept`)."""
+        if self.held[i] and self.held[j]:
+            self.best[(i, j, same)] = (radius, dist, match)
 
 
 def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, radius: float, min_dot: float,
@@ -581,41 +587,67 @@ def _correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, 
     round, only the other submaps of the own group (a session's own overlaps). One k-d tree per submap, each
     sample queried against the submaps whose boxes (grown by ``radius``) overlap its own: linear in the
     overlaps, not quadratic in the region's submaps; a single tree over all samples would let a submap's
-    own samples, denser nearby, hide the others'. ``held``: the queries between held submaps, kept over
-    the rounds (the same matches, fewer queries)."""
+    own samples, denser nearby, hide the others'. Each tree is queried once with the samples of every submap
+    that may match it (on every thread where they are many). ``held``: the matches between held submaps,
+    kept over the rounds (the same matches, fewer queries)."""
     k = 4
     ids = np.unique(owner)
     members = {i: np.flatnonzero(owner == i) for i in ids}
     trees = {i: held.tree(int(i), posed[m]) if held is not None else cKDTree(posed[m]) for i, m in members.items()}
-    lo = {i: posed[m].min(0) - radius for i, m in members.items()}
-    hi = {i: posed[m].max(0) + radius for i, m in members.items()}
+    lo = np.stack([posed[members[i]].min(0) for i in ids]) - radius
+    hi = np.stack([posed[members[i]].max(0) for i in ids]) + radius
+    # (source, target): boxes within reach, never the own submap
+    meet = ~((lo[None, :] > hi[:, None]).any(-1) | (hi[None, :] < lo[:, None]).any(-1) | np.eye(len(ids), dtype=bool))
+    if group is not None:
+        g = group[ids]
+        meet &= (g[:, None] == g[None, :]) if same else ((g[:, None] != g[None, :]) | (within is not None))
+    # the submap pairs to match, with each source sample's mask, by source then target
+    pairs: dict[tuple[int, int], np.ndarray] = {}
+    for a, b in np.argwhere(meet):
+        i, j = int(ids[a]), int(ids[b])
+        if not same and group is not None and group[j] == group[i]:
+            pairs[(i, j)] = within[members[i]]  # type: ignore[index]  # (meet: within is given)
+        else:
+            pairs[(i, j)] = np.ones(len(members[i]), bool)
+    # per pair, each source sample's nearest agreeing sample of the target: the held pairs' kept over the
+    # rounds, the others' in one query per target tree (its sources' samples together, on every thread)
+    nearest: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    asks: dict[int, list[int]] = {}
+    for (i, j) in pairs:
+        kept = held.kept(i, j, same, radius) if held is not None else None
+        if kept is not None:
+            nearest[(i, j)] = kept
+        else:
+            asks.setdefault(j, []).append(i)
+    for j, sources in asks.items():
+        rows = np.concatenate([members[i] for i in sources])
+        query = np.concatenate([pairs[(i, j)] for i in sources])
+        workers = cpu_threads() if len(rows) >= PARALLEL_QUERY_POINTS else 1
+        dist, idx = trees[j].query(posed[rows], k=k, distance_upper_bound=radius, workers=workers)
+        valid = np.isfinite(dist) & query[:, None]
+        cand = members[j][np.where(valid, idx, 0)]
+        valid &= np.einsum("nkd,nd->nk", normals[cand], normals[rows]) >= min_dot
+        d = np.where(valid, dist, np.inf)
+        first = np.argmin(d, axis=1)
+        at = np.arange(len(rows))
+        d_first, c_first = d[at, first], cand[at, first]
+        start = 0
+        for i in sources:
+            end = start + len(members[i])
+            nearest[(i, j)] = (d_first[start:end], c_first[start:end])
+            if held is not None:
+                held.keep(i, j, same, radius, *nearest[(i, j)])
+            start = end
     src, dst = [], []
-    for i in ids:
+    targets: dict[int, list[int]] = {}
+    for i, j in pairs:  # by source, then target in order: of two targets equally near, the first wins
+        targets.setdefault(i, []).append(j)
+    for i, js in targets.items():
         mine = members[i]
         best_d = np.full(len(mine), np.inf)
         best_j = np.full(len(mine), -1)
-        for j in ids:
-            if j == i or np.any(lo[j] > hi[i]) or np.any(hi[j] < lo[i]):
-                continue
-            query = np.ones(len(mine), bool)
-            if same and group is not None and group[j] != group[i]:
-                continue
-            if not same and group is not None and group[j] == group[i]:
-                if within is None:
-                    continue
-                query = within[mine]
-
-            def find(mine: np.ndarray = mine, j: int = j, query: np.ndarray = query) -> tuple[np.ndarray, np.ndarray]:
-                dist, idx = trees[j].query(posed[mine], k=k, distance_upper_bound=radius)
-                valid = np.isfinite(dist) & query[:, None]
-                cand = members[j][np.where(valid, idx, 0)]
-                valid &= np.einsum("nkd,nd->nk", normals[cand], normals[mine]) >= min_dot
-                d = np.where(valid, dist, np.inf)
-                first = np.argmin(d, axis=1)
-                rows = np.arange(len(mine))
-                return d[rows, first], cand[rows, first]
-
-            d_first, c_first = held.nearest(int(i), int(j), same, radius, find) if held is not None else find()
+        for j in js:
+            d_first, c_first = nearest[(i, j)]
             better = d_first < best_d
             best_d[better] = d_first[better]
             best_j[better] = c_first[better]
