@@ -334,8 +334,8 @@ class FusionConfig:
     # poses extracted both ways (3x3, inflation 0.1): exact sem F seeds 0/1/2 0.793/0.729/0.772 -> 0.809/0.747/0.795
     # (poles +0.07 to +0.09, fences +0.07), camera seed 1 0.412 -> 0.413
     thin_deflate: bool = True
-    # fractions of training at which targets are recomputed from the moving poses; a reconstruction holds every pose,
-    # so its targets are set once, before the first step (fusion.reconstruct._train)
+    # fractions of training at which targets are recomputed from the moving poses (1 before the first); a
+    # reconstruction holds every pose, so its targets are computed once, at the first (fusion.reconstruct._train)
     consensus_at: tuple[float, ...] = (0.4, 0.7)
     pool_points: int = 300_000  # surface points pre-sampled per tile (area-weighted)
     class_balance: float = 0.5  # pool faces weighted by area × (mean class share / class share)^this

@@ -53,9 +53,9 @@ def test_fixed_submaps_hold_and_are_not_returned() -> None:
     assert set(res.poses) == {"b"}
 
 
-def test_held_poses_get_their_consensus_targets_before_the_first_step(monkeypatch: pytest.MonkeyPatch) -> None:
-    # the targets are a function of the poses: with every pose held they are final from the start (not a
-    # target of 1 everywhere until consensus_at's first fraction); a free pose gets them recomputed as it moves
+def test_held_poses_get_their_consensus_targets_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the targets are a function of the poses: with every pose held they are computed once, at consensus_at's
+    # first fraction (1 everywhere before it, as with free poses); a free pose gets them recomputed as it moves
     import fusion.reconstruct as rec
 
     steps: list[int] = []
@@ -79,7 +79,7 @@ def test_held_poses_get_their_consensus_targets_before_the_first_step(monkeypatc
     for s in subs:
         s.free = False
     held = reconstruct_tile(subs, TILE, cfg)
-    assert steps == [0] and held.metrics["mean_conf_target"] < 1.0
+    assert steps == [8] and held.metrics["mean_conf_target"] < 1.0
     steps.clear()
     calls.clear()
     subs[1].free = True
