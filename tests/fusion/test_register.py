@@ -5,14 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fusion.register import (
-    _correspondences,
-    _HeldPairs,
-    _own_gains,
-    fine_register,
-    match_radii,
-    surface_samples,
-)
+from fusion.matching import HeldPairs, correspondences
+from fusion.register import _own_gains, fine_register, match_radii, surface_samples
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
@@ -102,7 +96,7 @@ def test_correspondences_skip_the_own_submap_and_disagreeing_normals() -> None:
     posed = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.05], [0.0, 0.0, 0.1], [0.02, 0.0, 0.0]])
     normals = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, 0, 1.0], [1.0, 0, 0]])
     owner = np.array([0, 0, 1, 1])
-    src, dst = _correspondences(posed, normals, owner, radius=0.5, min_dot=0.7)
+    src, dst = correspondences(posed, normals, owner, radius=0.5, min_dot=0.7)
     pairs = dict(zip(src.tolist(), dst.tolist(), strict=True))
     assert pairs[0] == 2  # floor to floor, though submap 1's wall point lies nearer
     assert pairs[1] == 3 and pairs[2] == 0 and pairs[3] == 1  # never a point of its own submap
@@ -114,10 +108,10 @@ def test_correspondences_within_a_group_only_for_the_samples_let_through() -> No
     posed = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.05], [0.0, 0.0, 0.1], [0.02, 0.0, 0.0]])
     normals = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, 0, 1.0], [1.0, 0, 0]])
     owner, group = np.array([0, 0, 1, 1]), np.array([0, 0])
-    src, _ = _correspondences(posed, normals, owner, radius=0.5, min_dot=0.7, group=group)
+    src, _ = correspondences(posed, normals, owner, radius=0.5, min_dot=0.7, group=group)
     assert len(src) == 0
     walls = np.abs(normals[:, 2]) < 0.7
-    src, dst = _correspondences(posed, normals, owner, radius=0.5, min_dot=0.7, group=group, within=walls)
+    src, dst = correspondences(posed, normals, owner, radius=0.5, min_dot=0.7, group=group, within=walls)
     assert dict(zip(src.tolist(), dst.tolist(), strict=True)) == {1: 3, 3: 1}
 
 
@@ -130,11 +124,11 @@ def test_held_pairs_kept_over_the_rounds_give_the_matches_of_a_fresh_query() -> 
     normals = rng.normal(0, 0.3, (len(owner), 3)) + [0, 0, 1]
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     group = np.array([0, 0, 1, 1, 2, 2])
-    held = _HeldPairs(np.array([True, True, True, True, False, False]))
+    held = HeldPairs(np.array([True, True, True, True, False, False]))
     for radius in (1.0, 0.5, 0.3, 0.3, 0.12, 0.6):
         for same in (False, True):
-            fresh = _correspondences(posed, normals, owner, radius, 0.7, group, same=same)
-            kept = _correspondences(posed, normals, owner, radius, 0.7, group, same=same, held=held)
+            fresh = correspondences(posed, normals, owner, radius, 0.7, group, same=same)
+            kept = correspondences(posed, normals, owner, radius, 0.7, group, same=same, held=held)
             assert len(fresh[0]) > 0
             np.testing.assert_array_equal(kept[0], fresh[0])
             np.testing.assert_array_equal(kept[1], fresh[1])
