@@ -61,17 +61,19 @@ def correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, r
     ``group`` (per submap index; default: each its own, i.e. only the own submap) unless the sample is one of
     ``within`` (per sample, bool: these match the other submaps of their group too); ``same``: the other way
     round, only the other submaps of the own group (a session's own overlaps). One k-d tree per submap, each
-    sample queried against the submaps whose boxes (grown by ``radius``) overlap its own: linear in the
+    sample queried against the submaps whose boxes (grown by ``radius``) hold it: linear in the
     overlaps, not quadratic in the region's submaps; a single tree over all samples would let a submap's
     own samples, denser nearby, hide the others'. Each tree is queried once with the samples of every submap
     that may match it (on every thread where they are many). ``held``: the matches between held submaps,
     kept over the rounds (the same matches, fewer queries)."""
     k = 4
-    ids = np.unique(owner)
-    members = {i: np.flatnonzero(owner == i) for i in ids}
-    trees = {i: held.tree(int(i), posed[m]) if held is not None else cKDTree(posed[m]) for i, m in members.items()}
-    lo = np.stack([posed[members[i]].min(0) for i in ids]) - radius
-    hi = np.stack([posed[members[i]].max(0) for i in ids]) + radius
+    order = np.argsort(owner, kind="stable")  # each submap's samples, in sample order, as one slice
+    ids, first = np.unique(owner[order], return_index=True)
+    members = dict(zip(ids, np.split(order, first[1:]), strict=True))
+    points = {i: posed[m] for i, m in members.items()}
+    trees = {i: held.tree(int(i), p) if held is not None else cKDTree(p) for i, p in points.items()}
+    lo = np.stack([points[i].min(0) for i in ids]) - radius
+    hi = np.stack([points[i].max(0) for i in ids]) + radius
     # (source, target): boxes within reach, never the own submap
     meet = ~((lo[None, :] > hi[:, None]).any(-1) | (hi[None, :] < lo[:, None]).any(-1) | np.eye(len(ids), dtype=bool))
     if group is not None:
@@ -95,22 +97,39 @@ def correspondences(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, r
             nearest[(i, j)] = kept
         else:
             asks.setdefault(j, []).append(i)
+    # only the samples inside a target's box grown by the radius can have a match within it (on the bench a
+    # third of those the boxes' overlap lets through): the others are left unmatched without a query
+    box_of = {int(i): b for b, i in enumerate(ids)}
+    targets_of: dict[int, list[int]] = {}
     for j, sources in asks.items():
-        rows = np.concatenate([members[i] for i in sources])
-        query = np.concatenate([pairs[(i, j)] for i in sources])
-        workers = cpu_threads() if len(rows) >= PARALLEL_QUERY_POINTS else 1
-        dist, idx = trees[j].query(posed[rows], k=k, distance_upper_bound=radius, workers=workers)
-        valid = np.isfinite(dist) & query[:, None]
-        cand = members[j][np.where(valid, idx, 0)]
-        valid &= np.einsum("nkd,nd->nk", normals[cand], normals[rows]) >= min_dot
-        d = np.where(valid, dist, np.inf)
-        first = np.argmin(d, axis=1)
-        at = np.arange(len(rows))
-        d_first, c_first = d[at, first], cand[at, first]
-        start = 0
         for i in sources:
-            end = start + len(members[i])
-            nearest[(i, j)] = (d_first[start:end], c_first[start:end])
+            targets_of.setdefault(i, []).append(j)
+    inside_of: dict[tuple[int, int], np.ndarray] = {}
+    for i, js in targets_of.items():
+        b = [box_of[j] for j in js]
+        hit = np.all((points[i][:, None] >= lo[b][None]) & (points[i][:, None] <= hi[b][None]), axis=-1)
+        for col, j in enumerate(js):
+            inside_of[(i, j)] = np.flatnonzero(pairs[(i, j)] & hit[:, col])
+    for j, sources in asks.items():
+        inside = [inside_of[(i, j)] for i in sources]
+        rows = np.concatenate([members[i][k_in] for i, k_in in zip(sources, inside, strict=True)])
+        d_first, c_first = np.full(len(rows), np.inf), np.zeros(len(rows), np.int64)
+        if len(rows):
+            workers = cpu_threads() if len(rows) >= PARALLEL_QUERY_POINTS else 1
+            dist, idx = trees[j].query(posed[rows], k=k, distance_upper_bound=radius, workers=workers)
+            valid = np.isfinite(dist)
+            cand = members[j][np.where(valid, idx, 0)]
+            valid &= np.einsum("nkd,nd->nk", normals[cand], normals[rows]) >= min_dot
+            d = np.where(valid, dist, np.inf)
+            first = np.argmin(d, axis=1)
+            at = np.arange(len(rows))
+            d_first, c_first = d[at, first], cand[at, first]
+        start = 0
+        for i, k_in in zip(sources, inside, strict=True):
+            end = start + len(k_in)
+            d_pair, c_pair = np.full(len(members[i]), np.inf), np.full(len(members[i]), members[j][0])
+            d_pair[k_in], c_pair[k_in] = d_first[start:end], c_first[start:end]
+            nearest[(i, j)] = (d_pair, c_pair)
             if held is not None:
                 held.keep(i, j, same, radius, *nearest[(i, j)])
             start = end

@@ -183,6 +183,10 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     axes = np.array([drift.ahead_axis(s.mesh.vertices) for s in subs])
     bends = np.zeros((n_subs, drift.PARAMS))
     local_cents = torch.tensor(np.stack(cents), device=dev)
+    # how far a submap's farthest vertex lies from its centroid (m): a twist (t, ω) about the centroid moves
+    # no point of it farther than |t| + |ω| × this
+    reach = torch.tensor([float(np.linalg.norm(s.mesh.vertices - c, axis=1).max(initial=0.0))
+                          for s, c in zip(subs, cents, strict=True)], device=dev)
     free_t = torch.tensor([s.free for s in subs], device=dev)
     colour = torch.tensor(_chain_colours(subs), device=dev)
     rounds = []
@@ -237,7 +241,8 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
 
         if gauss_newton:
             match = Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
-            current, steps = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour, config.fine_steps)
+            current, steps = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour, config.fine_steps,
+                                           reach, config.fine_converged_m)
             # the drift given the poses, then the poses given the drift, on the same matches; not in the basin's
             # extra rounds (wider than fine_max_dist_m), whose matches still include the wrong walls
             if correct and not basin:
@@ -245,7 +250,7 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
                 pts_t = torch.tensor(corrected_samples(pts, own, bends, axes), device=dev)
                 match = Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
                 current, more = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour,
-                                              config.fine_steps)
+                                              config.fine_steps, reach, config.fine_converged_m)
                 steps += more
             with torch.no_grad():
                 res = match.residual(current)
@@ -456,16 +461,21 @@ def _linearise(poses: torch.Tensor, match: Matches, terms: PoseTerms, gps: torch
     q_d = transform(poses, match.dst, match.p_dst)
     r = ((q_s - q_d) * match.normal).sum(-1)
     weight = match.w / (sigma2 + r * r)  # IRLS: the Cauchy loss's curvature at the current residual
-    j_s = torch.cat([match.normal, torch.linalg.cross(q_s - cents[match.src], match.normal)], -1)
-    j_d = -torch.cat([match.normal, torch.linalg.cross(q_d - cents[match.dst], match.normal)], -1)
+    # a match's Jacobian: j_s = [n, x_s] for its source's twist, j_d = -[n, x_d] for its target's
+    v = torch.cat([match.normal, torch.linalg.cross(q_s - cents[match.src], match.normal),
+                   torch.linalg.cross(q_d - cents[match.dst], match.normal)], -1)  # [n, x_s, x_d]
+    at_s, at_d = [0, 1, 2, 3, 4, 5], [0, 1, 2, 6, 7, 8]
+    j_s, j_d = v[:, at_s], -v[:, at_d]
     jp = _prior_jacobian(poses, cents, terms, gps, colour)
     rp = _prior_residuals(poses, terms, gps)  # (R, 6)
-    # the matches' four blocks, summed per (source, target) submap pair first: few pairs, many matches
+    # the matches' four blocks j_aᵀ w j_b, summed per (source, target) submap pair first (few pairs, many
+    # matches), all four read off one 9×9 sum of w v vᵀ per pair (the same products, signs exact): 81
+    # products a match instead of 144
     pair, inverse = torch.unique(match.src * m + match.dst, return_inverse=True)
-    ends = ((pair // m, j_s), (pair % m, j_d))
-    keys = [(a, b, torch.zeros(len(pair), 6, 6, dtype=poses.dtype, device=poses.device).index_add_(
-                0, inverse, weight[:, None, None] * ja[:, :, None] * jb[:, None, :]))
-            for a, ja in ends for b, jb in ends]
+    outer = torch.zeros(len(pair), 9, 9, dtype=poses.dtype, device=poses.device).index_add_(
+        0, inverse, weight[:, None, None] * v[:, :, None] * v[:, None, :])
+    ends = ((pair // m, at_s, 1.0), (pair % m, at_d, -1.0))
+    keys = [(a, b, outer[:, ia][:, :, ib] * (sa * sb)) for a, ia, sa in ends for b, ib, sb in ends]
     keys += [(jp.owners[:, s], jp.owners[:, t], jp.blocks[:, s].transpose(1, 2) @ jp.blocks[:, t])
              for s in (0, 1) for t in (0, 1)]
     h = _normal_equations(m, keys, free_dofs)
@@ -479,11 +489,13 @@ def _linearise(poses: torch.Tensor, match: Matches, terms: PoseTerms, gps: torch
 
 
 def _gauss_newton(poses: torch.Tensor, match: Matches, terms: PoseTerms, gps: torch.Tensor,
-                  local_cents: torch.Tensor, free: torch.Tensor, colour: torch.Tensor, steps: int
-                  ) -> tuple[torch.Tensor, int]:
+                  local_cents: torch.Tensor, free: torch.Tensor, colour: torch.Tensor, steps: int,
+                  reach: torch.Tensor | None = None, converged_m: float = 0.0) -> tuple[torch.Tensor, int]:
     """Minimise  Σ w·log(1 + (r/σ)²)  +  odometry  +  GPS  over the free submaps' poses by
     Levenberg-Marquardt on the iteratively reweighted (Cauchy) normal equations, at most ``steps``
-    accepted steps. Returns the poses and the steps taken.
+    accepted steps, until the objective stops falling (by 1e-9 of itself) or, with ``reach`` (per submap,
+    its vertices' farthest distance from its centroid) and ``converged_m`` > 0, a step moved no point of
+    any submap farther than ``converged_m``. Returns the poses and the steps taken.
 
     Why not L-BFGS: the data term holds neighbouring submaps within cm while the map's large-scale shape
     (how a session's chain bends between the places other sessions pin it) is held only by odometry
@@ -527,6 +539,10 @@ def _gauss_newton(poses: torch.Tensor, match: Matches, terms: PoseTerms, gps: to
             break
         poses, taken = trial, taken + 1
         converged = float(value - new) <= 1e-9 * float(value)
+        if reach is not None and converged_m > 0:
+            twist = torch.tensor(delta.reshape(m, 6), dtype=poses.dtype, device=poses.device)
+            moved = twist[:, :3].norm(dim=1) + twist[:, 3:].norm(dim=1) * reach
+            converged |= float(moved.max()) < converged_m
         value = new
         damping = max(damping / 10, 1e-7)
         if converged:

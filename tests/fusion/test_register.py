@@ -115,6 +115,43 @@ def test_correspondences_within_a_group_only_for_the_samples_let_through() -> No
     assert dict(zip(src.tolist(), dst.tolist(), strict=True)) == {1: 3, 3: 1}
 
 
+def _brute_force_matches(posed: np.ndarray, normals: np.ndarray, owner: np.ndarray, radius: float,
+                         min_dot: float, k: int = 4) -> dict[int, int]:
+    """The definition: per sample, over every other submap in order, the nearest of that submap's ``k``
+    nearest samples within ``radius`` whose normal agrees; of two submaps equally near, the first."""
+    out: dict[int, int] = {}
+    for s in range(len(posed)):
+        best = (np.inf, -1)
+        for j in np.unique(owner):
+            if j == owner[s]:
+                continue
+            mine = np.flatnonzero(owner == j)
+            d = np.linalg.norm(posed[mine] - posed[s], axis=1)
+            for c in np.argsort(d, kind="stable")[:k]:
+                if d[c] < radius and normals[mine[c]] @ normals[s] >= min_dot:
+                    if d[c] < best[0]:
+                        best = (d[c], mine[c])
+                    break
+        if best[1] >= 0:
+            out[s] = int(best[1])
+    return out
+
+
+def test_correspondences_are_the_nearest_agreeing_sample_of_another_submap_within_the_radius() -> None:
+    # eight submaps strung along a street, each overlapping its neighbours in part: most samples lie outside
+    # most other submaps' boxes (those are left unmatched without a query); the matches are the definition's
+    rng = np.random.default_rng(11)
+    owner = np.repeat(np.arange(8), 150)
+    posed = rng.uniform(0, 1, (len(owner), 3)) * [6.0, 3.0, 0.3] + (owner[:, None] * [2.5, 0.4, 0.0])
+    normals = rng.normal(0, 0.4, (len(owner), 3)) + [0, 0, 1]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    for radius in (0.6, 0.25):
+        src, dst = correspondences(posed, normals, owner, radius, 0.8)
+        want = _brute_force_matches(posed, normals, owner, radius, 0.8)
+        assert len(want) > 100
+        assert dict(zip(src.tolist(), dst.tolist(), strict=True)) == want
+
+
 def test_held_pairs_kept_over_the_rounds_give_the_matches_of_a_fresh_query() -> None:
     # six submaps of noisy samples over one patch, four held: over shrinking radii (and one wider again) the
     # matches with the held pairs' queries kept are those of fresh queries, in both passes; fewer queries
@@ -218,7 +255,7 @@ def test_the_odometry_and_gps_jacobian_matches_autograd() -> None:
     np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-5)
 
 
-def _bent_session(steps_per_round: int, solver: str):  # noqa: ANN202
+def _bent_chain() -> list[SubmapInput]:
     # session b: four submaps over session a's block, started on a bend (0, 0.3, 0.6, 0.9 m across and
     # 0-1.5° of yaw) while their odometry says they coincide; GPS 1.5 m at the truth
     sigma = Sigma(1.5, 1.5)
@@ -227,7 +264,11 @@ def _bent_session(steps_per_round: int, solver: str):  # noqa: ANN202
         wrong = Pose(np.array([0.1 * k, 0.3 * k, 0.0]), rot_z(0.5 * k))
         subs.append(SubmapInput(f"b{k}", "sb", k, _block(extra_box=True), wrong, Pose.identity(),
                                 Sigma(0.02, 0.05), pose_gps=Pose.identity()))
-    return _run(subs, fine_steps=steps_per_round, fine_solver=solver)
+    return subs
+
+
+def _bent_session(steps_per_round: int, solver: str):  # noqa: ANN202
+    return _run(_bent_chain(), fine_steps=steps_per_round, fine_solver=solver)
 
 
 def test_gauss_newton_registers_a_bent_chain_in_a_few_steps_per_round() -> None:
@@ -236,6 +277,17 @@ def test_gauss_newton_registers_a_bent_chain_in_a_few_steps_per_round() -> None:
     for k in range(1, 5):
         t, deg = _relative([res.poses[0], res.poses[k]])
         assert t < 0.02 and deg < 0.05, (k, t, deg)
+
+
+def test_a_round_stops_once_a_step_moves_no_point_farther_than_the_tolerance() -> None:
+    # the bent chain registered with the rounds run until the objective stops falling, and with them
+    # stopped once a step moves every point by less than 0.1 mm: fewer steps, the same poses within that
+    full = _run(_bent_chain(), fine_steps=30, fine_converged_m=0.0)
+    early = _run(_bent_chain(), fine_steps=30, fine_converged_m=1e-4)
+    steps = [sum(r["steps"] for r in res.metrics["rounds"]) for res in (full, early)]
+    assert steps[1] < steps[0], steps
+    for a, b in zip(full.poses, early.poses, strict=True):
+        assert np.abs(a[:3, 3] - b[:3, 3]).max() < 1e-3
 
 
 def test_the_lbfgs_solver_stays_available_and_registers_the_same_chain_given_steps() -> None:
