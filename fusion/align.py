@@ -145,7 +145,8 @@ def align_region(
     losses = _train(built, subs, poses, gps, config, iterations, gen, progress)
     train_s = time.perf_counter() - t_train
     if config.fine_register and config.fine_polish_rounds > 0:
-        poses, coarse["polish"] = _polish(subs, poses, gps, config, dev)
+        last = coarse.get("fine", {}).get("rounds") or [{}]
+        poses, coarse["polish"] = _polish(subs, poses, gps, config, dev, last[-1].get("gain", 1.0))
     fields = {t.key: field_state(t.field) for t in built}
     metrics = {
         "losses": losses,
@@ -215,19 +216,23 @@ def _pose_set(subs: list[SubmapInput], mats: list[np.ndarray], dev: torch.device
     return PoseSet(torch.tensor(np.stack(mats)), torch.tensor(centroids), torch.tensor([s.free for s in subs])).to(dev)
 
 
-def _polish(subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: FusionConfig, dev: torch.device
-            ) -> tuple[PoseSet, dict[str, Any]]:
+def _polish(subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: FusionConfig, dev: torch.device,
+            gain: float = 1.0) -> tuple[PoseSet, dict[str, Any]]:
     """The fine registration once more from the field alignment's poses, over ``fine_polish_rounds`` radii
     from ``fine_polish_max_m`` down to ``fine_min_dist_m``: the field's stochastic pose steps (Adam, one
     tile per step) leave each pose a few cm to dm off the optimum of the surfaces it was trained on, and
-    on an exact fleet they took the map from 0.07 m (the fine registration) to 0.20 m (3×3 bench, seed 0)."""
+    on an exact fleet they took the map from 0.07 m (the fine registration) to 0.20 m (3×3 bench, seed 0).
+
+    ``gain``: the first registration's data gain in its last round; the polish's matches count ``fine_weight`` ×
+    that (within [1, ``fine_polish_gain_max``]) against the priors: as much more as they proved tight."""
     with torch.no_grad():
         current = [m for m in poses().cpu().numpy()]
     radii = np.geomspace(max(config.fine_polish_max_m, config.fine_min_dist_m), config.fine_min_dist_m,
                          config.fine_polish_rounds)
     # the drift stays as the first registration found it (``subs`` are already corrected)
-    fine = fine_register(subs, current, gps, replace(config, fine_drift=False), dev, radii)
-    return _pose_set(subs, fine.poses, dev), fine.metrics
+    weight = config.fine_weight * float(np.clip(gain, 1.0, config.fine_polish_gain_max))
+    fine = fine_register(subs, current, gps, replace(config, fine_drift=False, fine_weight=weight), dev, radii)
+    return _pose_set(subs, fine.poses, dev), fine.metrics | {"weight": weight}
 
 
 def _build_tiles(

@@ -41,7 +41,7 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
   (``fine_register``, ``fusion.register``), and while
   the field's active cells are coarser than ``align_planar_cell_m`` the alignment moves poses only in
   x, y and yaw: the coarse levels' pull on height and tilt depends on each submap's coverage, and bent
-  forward-camera sessions apart in height (README, "Camera fleets").
+  forward-camera sessions apart in height (docs/METHOD_LOG.md, "Camera fleets").
 - The paper preset extracts at 0.2 m (the F-score distance d of the paper's evaluation); 0.1 m made
   the lattice 8x and the mesh 4x larger.
 """
@@ -126,7 +126,7 @@ class FusionConfig:
     # fusion.register.surface_samples; 0: by area): facades along a street leave the direction of travel open
     fine_normal_balance: float = 1.0
     # match samples to the own session's other submaps too, pooled with the other sessions' (superseded by
-    # fine_own_overlap below, which weighs them by how well they fit; kept for the README's runs). Off, each session's chain
+    # fine_own_overlap below, which weighs them by how well they fit; kept for the method log's runs). Off, each session's chain
     # between the places other sessions pin it was shaped by odometry alone; on, its consecutive submaps'
     # overlaps hold it. Start poses, 3x3 exact bench seed 0, with fine_noise_max_gain 20: 0.104 -> 0.071 m; but
     # fused camera seed 0 geo F 0.801 -> 0.746 (monocular submaps of one session share their biases): off
@@ -147,7 +147,7 @@ class FusionConfig:
     # camera 1 0.900/0.401/0.281 -> 0.919/0.420/0.283, camera 2 0.852/0.365/0.346 -> 0.859/0.384/0.332. Poses
     # better on every exact seed, camera 0 loses ~0.02 geo F (camera 0's fused geo F varies 0.80-0.82 between
     # runs). Judged by the residuals after a rigid re-fit of each pair instead, camera 0 lost 0.055: a monocular
-    # pair's small overlap fits rigidly (reverted). README, "A session's own overlaps by default"
+    # pair's small overlap fits rigidly (reverted). docs/METHOD_LOG.md, "A session's own overlaps by default"
     fine_own_overlap: bool = True
     # each free submap's monocular drift (one scale, a slow yaw and pitch bend about its local origin,
     # fusion.drift) estimated with its pose in every round of the fine registration, then held: the field
@@ -158,7 +158,7 @@ class FusionConfig:
     # 0.920/0.408/0.243, camera 2 0.860/0.386/0.318 -> 0.889/0.398/0.326; exact 1 0.983/0.763/0.074 ->
     # 0.981/0.746/0.110 (on exact submaps it finds 0.1-0.2 % scale RMS where there is none, and the poses
     # suffer). Off by default: a monocular fleet's deployment turns it on
-    # (FLEETMAP_FUSION_SET="fine_drift=true"). README, "A submap's monocular drift"
+    # (FLEETMAP_FUSION_SET="fine_drift=true"). docs/METHOD_LOG.md, "A submap's monocular drift"
     fine_drift: bool = False
     fine_drift_scale_sigma: float = 0.02
     fine_drift_bend_deg_per_m: float = 0.04
@@ -181,6 +181,16 @@ class FusionConfig:
     # 0.195 m (seed 0); polished 0.073 m
     fine_polish_rounds: int = 3
     fine_polish_max_m: float = 0.75
+    # the polish's matches count fine_weight × the first registration's data gain in its last round (the mean of
+    # the per-match gains of fine_noise_max_gain: how much tighter than the radius' scale the matches agreed), up to
+    # this × (1: as the first registration). The polish starts within decimetres of the optimum, where matches
+    # on exact surfaces (gain ~4) are true ones and may outweigh the odometry and GPS priors that bent the map a
+    # few cm per submap link; monocular matches (gain ~1) carry depth error along each viewing ray, which more
+    # weight would let bend the map instead, so they keep the registration's weight. The 3x3 bench's field
+    # alignment poses polished with weight 20 / 40 / 80: exact 0 0.105 / 0.089 / 0.083 m, exact 1 0.073 / 0.045 /
+    # 0.041 m, camera 0 0.481 / 0.411 / 0.353 m, camera 1 0.286 / 0.282 / 0.297 m, camera 2 0.315 / 0.341 / 0.362 m
+    # (docs/METHOD_LOG.md, "The polish trusts tight matches more")
+    fine_polish_gain_max: float = 4.0
     # accepted steps per round at most (lbfgs: iterations). Odometry makes the problem stiff (cm between
     # neighbours): L-BFGS, 3x3 bench seed 0, exact / camera start: 30 steps 0.489 / 0.917 m, 150 0.169 / 0.584 m,
     # 400 0.155 / 0.553 m; exact with fine_weight 400 and same-session matches 150 0.168 m, 600 0.084 m (165 s). gn:
@@ -229,7 +239,7 @@ class FusionConfig:
     # steps, every level at once (0: from the alignment's field as above). Fewer steps lost the new session's
     # surface and the consensus' changes (a fresh Adam's first steps jolt a trained field; at the true poses,
     # exact seed 1, tile 1_0 geo / sem F: 1/3 0.994 / 0.928, 1/6 0.987 / 0.861, 1/12 0.962 / 0.758, the
-    # four-session map 0.962 / 0.838; a lower field rate could not build the new surface). README, "Adding a
+    # four-session map 0.962 / 0.838; a lower field rate could not build the new surface). docs/METHOD_LOG.md, "Adding a
     # session ... from the tile's own field".
     refusion_warm_fraction: float = 1 / 3
     # a tile is fused again for a new submap only where the submap's surface, at its aligned pose, comes
@@ -260,7 +270,7 @@ class FusionConfig:
     # data: exact 0 0.983 / 0.825 / 0.094 vs 0.985 / 0.812 / 0.104, exact 1 0.981 / 0.761 / 0.053 vs 0.982 /
     # 0.771 / 0.072, camera 1 0.910 / 0.436 / 0.287 vs 0.918 / 0.428 / 0.284, camera 0 0.780 / 0.355 / 0.495 vs
     # 0.776 / 0.375 / 0.481; the re-alignment 32-44 % of a full fusion instead of 60-68 % with half the steps
-    # (0.5, the default before: exact 1 0.980 / 0.787 / 0.091, camera 1 0.901 / 0.390 / 0.282). README,
+    # (0.5, the default before: exact 1 0.980 / 0.787 / 0.091, camera 1 0.901 / 0.390 / 0.282). docs/METHOD_LOG.md,
     # "Additions by registration alone". In the twentieth session the same setting lost exact 0 sem F 0.054.
     realign_iterations_fraction: float = 0.0
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). 0 (default since
@@ -300,7 +310,7 @@ class FusionConfig:
     # free-space evidence ignores a surface whose own session saw open ground this far beneath it (0: off):
     # sign plates and tree crowns, under which the other sessions' rays passed (fusion.sampling._overhangs).
     # Off: the simulated worlds do not have the case (targets unchanged on 4 traced tiles; 3x3 bench, 1 m, exact
-    # seeds 0/1 and camera 1: geo F / sem F within run-to-run noise; README, "The default ... in the same run")
+    # seeds 0/1 and camera 1: geo F / sem F within run-to-run noise; docs/METHOD_LOG.md, "The default ... in the same run")
     consensus_overhang_m: float = 0.0
     # consensus fraction mapped to c_th (kept from here up): 2 of 3 and 3 of 5 observing sessions keep a surface
     # (the raw fraction dropped both), 1 of 2, 1 of 3 and 2 of 5 do not. With 2 sessions a surface one of them
@@ -308,10 +318,10 @@ class FusionConfig:
     # camera bench, 3 sessions, seed 0: raw geo F 0.767 / transient 0.053, 0.4: 0.791 / 0.16, 0.55: 0.795 / 0.06
     consensus_keep: float = 0.55
     # consensus off (2026-12-02, same bench, seeds 0/1/2): geo F 0.852/0.774/0.745 -> 0.922/0.806/0.755, transient
-    # 2.5/22.2/27.8 % -> 6.2/20.9/36.2 %; the exact fleet not measured without it yet (README, ablation)
+    # 2.5/22.2/27.8 % -> 6.2/20.9/36.2 %; the exact fleet not measured without it yet (docs/METHOD_LOG.md, ablation)
     # movable classes need a second witness (``fusion.sampling.consensus_targets``): kept only where at least
     # this many sessions saw them, once the tile holds that many sessions (0 or 1: off). Free-space evidence
-    # cannot drop a car parked where one session drove: no other session saw through it (README, "Camera fleets")
+    # cannot drop a car parked where one session drove: no other session saw through it (docs/METHOD_LOG.md, "Camera fleets")
     # A witness is any surface within consensus_radius_m; counting only another session's movable surface within
     # 1 m (2026-12-03, camera seeds 0/1/2) kept no more vehicles (F 0.15/0.06/0.00 vs 0.13/0.06/0.00): the cars
     # lost are those one session alone saw, not ones the sessions' depth errors put apart. Removed again.
@@ -331,7 +341,7 @@ class FusionConfig:
     # 0.973/0.731; camera seeds 0/1 0.811/0.355 -> 0.815/0.375, 0.899/0.398 -> 0.899/0.411 (poses unchanged).
     # 0.15 since the faces move back in (below): a 0.05 m sign plate then spans 0.35 m, two of the cpu preset's
     # 0.156 m finest cells; at the true poses, sem F exact 0/1/2 0.809/0.747/0.795 -> 0.840/0.760/0.798, camera 1
-    # 0.413 -> 0.420 (README, "Thin structures")
+    # 0.413 -> 0.420 (docs/METHOD_LOG.md, "Thin structures")
     thin_inflate_m: float = 0.15
     thin_classes: tuple[str, ...] = ("pole", "traffic_sign", "fence")
     # ... and the extracted faces of those classes move back in by thin_inflate_m (fusion.extract.deflate_faces):
@@ -403,6 +413,9 @@ class FusionConfig:
             raise ValueError(f"detail_m must be >= 0 (0: off), got {self.detail_m}")
         if not 0 <= self.realign_iterations_fraction <= 1:
             raise ValueError(f"realign_iterations_fraction must be in [0, 1], got {self.realign_iterations_fraction}")
+        if self.fine_polish_gain_max < 1:
+            raise ValueError(f"fine_polish_gain_max must be >= 1 (1: the registration's weight), got "
+                             f"{self.fine_polish_gain_max}")
         if self.fine_converged_m < 0:
             raise ValueError(f"fine_converged_m must be >= 0, got {self.fine_converged_m}")
         if self.align_iterations_per_tile < 0:

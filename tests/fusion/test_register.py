@@ -432,3 +432,34 @@ def test_a_sessions_own_ground_counts_only_as_far_as_its_walls_fit_rigidly() -> 
     lifted = _own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_noise_ground=True), basin=False)
     assert lifted[3 * n:].min() > 10  # fine_noise_ground: every session's ground by its spread
     assert not _own_gains(residual, ground, part, session, 0.5, cfg, basin=True).any()
+
+
+def test_the_polish_trusts_matches_against_biased_odometry_as_far_as_they_proved_tight() -> None:
+    from fusion.align import _polish
+    from fusion.poses import PoseSet
+
+    # session b: four submaps truly over session a's block (all at identity), whose odometry claims 0.15 m of
+    # travel per submap; the field left them spread along that odometry. The surfaces say where they are: the
+    # more the polish's matches count against the odometry prior (fine_weight × the registration's data gain,
+    # capped), the closer b ends to the truth.
+    subs = [SubmapInput("a", "sa", 0, _block(), Pose.identity(), Pose.identity(), Sigma(1.5, 1.5),
+                        pose_gps=Pose.identity())]
+    for k in range(4):
+        subs.append(SubmapInput(f"b{k}", "sb", k, _block(extra_box=True), Pose(np.array([0.15 * (k - 1.5), 0.0, 0.0]),
+                                rot_z(0.0)), Pose(np.array([0.15 * k, 0.0, 0.0]), rot_z(0.0)), Sigma(1.5, 1.5),
+                                odometry_sigma=Sigma(0.05, 0.5), pose_gps=Pose.identity()))
+    start = np.stack([s.pose_init.matrix() for s in subs])
+    cents = np.stack([m[:3, :3] @ s.mesh.vertices.mean(0) + m[:3, 3] for m, s in zip(start, subs, strict=True)])
+    gps = torch.tensor(np.stack([s.pose_gps.matrix() for s in subs]))
+
+    def spread(gain: float, cap: float = 4.0) -> tuple[float, float]:
+        poses = PoseSet(torch.tensor(start), torch.tensor(cents), torch.ones(len(subs), dtype=torch.bool))
+        polished, metrics = _polish(subs, poses, gps, CFG.with_(fine_weight=5.0, fine_polish_gain_max=cap),
+                                    torch.device("cpu"), gain)
+        final = polished().detach().numpy()
+        return max(_relative([final[0], m])[0] for m in final[1:]), metrics["weight"]  # b's farthest submap from a
+
+    (loose, w_loose), (tight, w_tight) = spread(1.0), spread(16.0)
+    assert (w_loose, w_tight) == (5.0, 20.0)  # a gain below 1 never lowers the weight; above the cap it stops
+    assert spread(0.5)[1] == 5.0 and spread(16.0, cap=1.0)[1] == 5.0
+    assert tight < 0.3 * loose, (loose, tight)  # 0.0057 against 0.022 m, one machine
