@@ -85,21 +85,33 @@ def test_incremental_alignment_moves_only_the_new_submaps(steps: int) -> None:
 
 
 def test_an_alignment_without_field_steps_is_the_registration_alone() -> None:
-    """``align_iterations_per_tile`` 0 (a re-alignment with ``realign_iterations_fraction`` 0): the poses
-    are where the registrations put them (``start_poses``), no field is trained or returned; a held map
-    (frozen fields) still tracks, with its own steps."""
+    """``align_iterations_per_tile`` 0 (a re-alignment with ``realign_iterations_fraction`` 0, an addition):
+    no field is trained or returned; the poses are where the registrations put them (``start_poses``), polished
+    once more where the registration's matches proved tighter than its radii (gain > 1): the polish's weight is
+    then above the registration's. Without that gain (``fine_polish_gain_max`` 1) nothing would change, and no
+    polish runs."""
     from fusion.align import start_poses
     from fusion.config import FusionConfig
 
     subs = _scene()
     cfg = _config(align_iterations_per_tile=0)
-    res = align_region(subs, TILES, cfg)
-    assert res.fields == {} and res.metrics["iterations"] == 0 and res.metrics["registration_only"]
+    plain = align_region(subs, TILES, cfg.with_(fine_polish_gain_max=1.0))
+    assert plain.fields == {} and plain.metrics["iterations"] == 0 and plain.metrics["registration_only"]
+    assert "polish" not in plain.metrics["coarse"]
     start, _ = start_poses(subs, cfg)
-    for sid, pose in res.poses.items():
+    for sid, pose in plain.poses.items():
         assert np.allclose(pose.t, start[sid].t, atol=1e-6) and np.allclose(np.abs(pose.q), np.abs(start[sid].q), atol=1e-6)
-    before, after = _relative({s.id: s.pose_init for s in subs}), _relative(res.poses)
-    assert after[0] < 0.5 * before[0], (before, after)
+    before = _relative({s.id: s.pose_init for s in subs})
+    assert _relative(plain.poses)[0] < 0.5 * before[0], before
+
+    res = align_region(subs, TILES, cfg)
+    gain = res.metrics["coarse"]["fine"]["rounds"][-1]["gain"]
+    assert gain > 1.5  # an exact street: the matches agree far tighter than the last radius
+    assert res.metrics["coarse"]["polish"]["weight"] == pytest.approx(cfg.fine_weight * min(gain, cfg.fine_polish_gain_max))
+    assert res.fields == {} and res.metrics["registration_only"]
+    moved = max(np.linalg.norm(res.poses[sid].t - start[sid].t) for sid in start)
+    assert moved > 1e-4  # the polish ran from the registration's poses
+    assert _relative(res.poses)[0] <= _relative(plain.poses)[0] + 0.01, (_relative(plain.poses), _relative(res.poses))
     assert FusionConfig(realign_iterations_fraction=0.0).for_realignment().align_iterations_per_tile == 0
     with pytest.raises(ValueError, match="align_iterations_per_tile"):
         FusionConfig(align_iterations_per_tile=-1)
