@@ -129,9 +129,10 @@ def align_region(
     subs = [corrected_input(s, drifts.get(s.id)) for s in subs]  # the field sees each submap as corrected
     held = any((t.i, t.j) in frozen for t in tiles)  # a map is there: new submaps are added to it
     per_tile = config.align_incremental_iterations_per_tile if held else config.align_iterations_per_tile
+    polish = config.fine_register and config.fine_polish_rounds > 0
     gain = (coarse.get("fine", {}).get("rounds") or [{}])[-1].get("gain", 1.0)
     if per_tile == 0:  # registration only: no field is trained (nor tracked against)
-        if config.fine_register and config.fine_polish_rounds > 0 and _polish_weight(gain, config) > config.fine_weight:
+        if polish and _polish_weight(gain, config) > config.fine_weight:
             poses, coarse["polish"] = _polish(subs, poses, gps, config, dev, gain)  # tight matches: trusted more
         return AlignResult(map_poses(poses, origin, subs), {}, drifts=drifts, metrics={
             "losses": {}, "iterations": 0, "incremental": held, "registration_only": True,
@@ -147,7 +148,7 @@ def align_region(
     t_train = time.perf_counter()
     losses = _train(built, subs, poses, gps, config, iterations, gen, progress)
     train_s = time.perf_counter() - t_train
-    if config.fine_register and config.fine_polish_rounds > 0:
+    if polish:
         poses, coarse["polish"] = _polish(subs, poses, gps, config, dev, gain)
     fields = {t.key: field_state(t.field) for t in built}
     metrics = {
@@ -219,7 +220,7 @@ def _pose_set(subs: list[SubmapInput], mats: list[np.ndarray], dev: torch.device
 
 
 def _polish(subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: FusionConfig, dev: torch.device,
-            gain: float = 1.0) -> tuple[PoseSet, dict[str, Any]]:
+            gain: float) -> tuple[PoseSet, dict[str, Any]]:
     """The fine registration once more from the field alignment's poses, over ``fine_polish_rounds`` radii
     from ``fine_polish_max_m`` down to ``fine_min_dist_m``: the field's stochastic pose steps (Adam, one
     tile per step) leave each pose a few cm to dm off the optimum of the surfaces it was trained on, and

@@ -327,7 +327,8 @@ def test_the_polish_after_the_field_registers_what_the_field_left_a_few_decimetr
     cents = np.stack([m[:3, :3] @ s.mesh.vertices.mean(0) + m[:3, 3] for m, s in zip(start, subs, strict=True)])
     poses = PoseSet(torch.tensor(start), torch.tensor(cents), torch.tensor([True, True]))
     gps = torch.tensor(np.stack([s.pose_gps.matrix() for s in subs]))
-    polished, metrics = _polish(subs, poses, gps, CFG.with_(fine_polish_rounds=3, fine_polish_max_m=0.75), torch.device("cpu"))
+    polished, metrics = _polish(subs, poses, gps, CFG.with_(fine_polish_rounds=3, fine_polish_max_m=0.75), torch.device("cpu"),
+                                gain=1.0)  # the registration's own weight
     assert [round(r["radius_m"], 3) for r in metrics["rounds"]] == [0.75, 0.433, 0.25]
     t, deg = _relative(list(polished().detach().numpy()))
     assert t < 0.02 and deg < 0.1, (t, deg)
