@@ -48,6 +48,7 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
@@ -275,6 +276,16 @@ class FusionConfig:
     # (0.5, the default before: exact 1 0.980 / 0.787 / 0.091, camera 1 0.901 / 0.390 / 0.282). docs/METHOD_LOG.md,
     # "Additions by registration alone". In the twentieth session the same setting lost exact 0 sem F 0.054.
     realign_iterations_fraction: float = 0.0
+    # a re-alignment by registration alone (no field trained) keeps the map where it stood: its poses move
+    # rigidly, all together, so that the submaps held before stand where they stood in least squares
+    # (``fusion.placement``; the data fix the submaps relative to each other, only the weak GPS prior fixes the
+    # whole map's place, and it moved the whole map 0.2-0.4 m per re-alignment); not where a held submap
+    # (reaching outside the region) pins the map already
+    realign_hold: bool = True
+    # ... and a tile then keeps its mesh where no new submap comes within ``refusion_band_m`` of it and no
+    # held surface near it moved by this much or more (m; 0: every tile reconstructed again). 0.05: a fifth
+    # of the extraction voxel, a quarter of the evaluation's 0.2 m
+    realign_keep_m: float = 0.05
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). 0 (default since
     # the twenty-fifth session): the new submaps placed by the registrations alone (the held submaps fixed), no
     # frozen field tracked; a tile new to the map then starts cold. add_sessions, fourth session added, 240 -> 0
@@ -413,6 +424,8 @@ class FusionConfig:
             raise ValueError("fine_drift_scale_sigma and fine_drift_bend_deg_per_m must be > 0")
         if self.detail_m < 0:
             raise ValueError(f"detail_m must be >= 0 (0: off), got {self.detail_m}")
+        if not 0 <= self.realign_keep_m < math.inf:
+            raise ValueError(f"realign_keep_m must be a finite number of metres >= 0, got {self.realign_keep_m}")
         if not 0 <= self.realign_iterations_fraction <= 1:
             raise ValueError(f"realign_iterations_fraction must be in [0, 1], got {self.realign_iterations_fraction}")
         if self.fine_polish_gain_max < 1:

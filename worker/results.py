@@ -207,13 +207,16 @@ def commit_alignment(
     *,
     incremental: bool = False,
     drifts: dict[str, Drift] | None = None,
+    kept: list[tuple[int, int]] | None = None,
 ) -> tuple[Outcome, list[str]]:
     """ONE transaction: the refined pose of every aligned submap (written once: only where none was; a
     joint re-alignment, ``claim.realign``, rewrites them) with the tiles its surface reaches there
     (``surface``, by submap id; ``Submap.surface_tiles``) and whether it was aligned against a held map
     (``incremental``) and its drift correction (``drifts``, by submap id; none: NULL), a reconstruct job for each of the region's tiles (each tile handed from this lease to
     its job, ``queued``, with the blob of the field trained there, if any, which replaces the tile's
-    reconstruction field as its warm start), the align job ``succeeded``. Returns the outcome and the new
+    reconstruction field as its warm start), the align job ``succeeded``. A tile in ``kept`` (a re-alignment
+    left its surface where its mesh has it: ``fusion.placement.settle_realignment``) goes back to ``fused``
+    instead where no upload arrived since its last fusion (``tiles.settle``). Returns the outcome and the new
     jobs to enqueue."""
     now = utcnow()
     with factory() as db:
@@ -228,8 +231,11 @@ def commit_alignment(
                         surface_tiles=[list(t) for t in surface[submap_id]] if surface and submap_id in surface else None)
             )
         joined = _join_surface_tiles(db, surface or {}, set(claim.tiles), now)
-        jobs = []
+        jobs, settled = [], []
         for i, j in claim.tiles:
+            if (i, j) in set(kept or ()) and tiles.settle(db, i, j, owner=claim.owner, now=now):
+                settled.append([i, j])
+                continue
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
                             trigger=JobTrigger.auto.value, created_at=now, enqueued_at=now)
             if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j))):
@@ -239,7 +245,9 @@ def commit_alignment(
             db.add(job)
             jobs.append(job.id)
         _job_succeeded(db, claim, now, None, jsonable({**metrics, "aligned_submaps": len(poses),
-                                                       "reconstruct_jobs": jobs, "joined_tiles": joined}))
+                                                       "reconstruct_jobs": jobs, "joined_tiles": joined,
+                                                       "kept_tiles": settled}))
         db.commit()
-    log.info("region %s aligned: %d submap poses, %d tiles to reconstruct", claim.tiles, len(poses), len(jobs))
+    log.info("region %s aligned: %d submap poses, %d tiles to reconstruct, %d kept", claim.tiles, len(poses), len(jobs),
+             len(settled))
     return Outcome.succeeded, jobs

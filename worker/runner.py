@@ -13,6 +13,7 @@ the tile state (``fused``, or ``dirty`` when uploads arrived during the fusion) 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import socket
 import time
@@ -24,6 +25,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.drift import Drift, corrected_input
 from fusion.errors import FusionError, FusionLibraryError
+from fusion.placement import settle_realignment
 from fusion.tiles import surface_tiles
 from fusion.types import FusedMesh, FusionResult, Pose
 from service.broker import enqueue
@@ -120,6 +122,19 @@ def _align(
     return result.poses, result.metrics, trained, result.drifts
 
 
+def _settle(inputs: RegionInputs, poses: dict[str, Pose], drifts: dict[str, Drift], keys: list[tuple[int, int]],
+            tile_size: float) -> tuple[dict[str, Pose], list[tuple[int, int]], dict[tuple[int, int], float]]:
+    """A re-alignment by registration alone (``fusion.placement.settle_realignment``): its poses with the map
+    held where the refined poses had it, the tiles whose surface did not move, and each tile's motion."""
+    config = inputs.config
+    before = {row.id: Pose.from_json(row.pose_refined) for row, _, free in inputs.rows if free and row.pose_refined}
+    shaped = {row.id: Drift.from_json(row.drift_refined) for row, _, free in inputs.rows
+              if free and row.pose_refined and row.drift_refined}
+    return settle_realignment(inputs.submaps, before, poses, keys, tile_size=tile_size, band_m=config.refusion_band_m,
+                              hold=config.realign_hold, keep_m=config.realign_keep_m, drifts_before=shaped,
+                              drifts_after=drifts)
+
+
 def _run_alignment(
     factory: sessionmaker[Session], blobs: BlobStore, settings: Settings, claim: Claim, keeper: LeaseKeeper
 ) -> Outcome:
@@ -127,6 +142,7 @@ def _run_alignment(
         inputs = plan_alignment(db, settings, claim.tiles, claim.realign)
     poses: dict[str, Pose] = {}
     drifts: dict[str, Drift] = {}
+    kept: list[tuple[int, int]] = []
     surface: dict[str, list[tuple[int, int]]] = {}
     fields: dict[tuple[int, int], str] = {}
     metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free), "realign": claim.realign}
@@ -137,6 +153,10 @@ def _run_alignment(
         frozen = {key: blobs.get(sha) for key, sha in inputs.fields.items()}
         poses, align_metrics, trained, drifts = _align(inputs, keeper, frozen)
         metrics.update(align_metrics)
+        if claim.realign and not trained:  # by registration alone: the map held, unmoved tiles kept
+            poses, kept, moved = _settle(inputs, poses, drifts, claim.tiles, settings.tile_size)
+            metrics["tile_moved_m"] = {f"{i}_{j}": round(d, 4) if math.isfinite(d) else None
+                                       for (i, j), d in sorted(moved.items())}
         posed = [corrected_input(s, drifts.get(s.id)) for s in inputs.submaps if s.id in poses]
         surface = {s.id: surface_tiles(s.mesh.vertices, s.mesh.faces, poses[s.id], settings.tile_size,
                                        inputs.config.refusion_band_m) for s in posed}
@@ -144,7 +164,8 @@ def _run_alignment(
     if keeper.lost.is_set():
         raise LeaseLost(f"lease of job {claim.job_id} lost")
     outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics, surface,
-                                             incremental=inputs.held > 0 and not claim.realign, drifts=drifts)
+                                             incremental=inputs.held > 0 and not claim.realign, drifts=drifts,
+                                             kept=kept)
     for job_id in jobs:
         enqueue(job_id, settings, JobKind.reconstruct.value)
     return outcome

@@ -20,6 +20,7 @@ would more than double the CPU time and are not evaluated).
 from __future__ import annotations
 
 import json
+import math
 import tempfile
 import time
 from collections.abc import Callable
@@ -37,6 +38,7 @@ from fusion.drift import Drift, corrected_input
 from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.offline import LoadedSubmap, fuse_tiles, reconstruct_tiles
+from fusion.placement import settle_realignment
 from fusion.regions import needs_realignment
 from fusion.tiles import surface_tiles, tile_bounds
 from fusion.types import FusedMesh, FusionResult, Pose, TileSpec
@@ -294,44 +296,37 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     """An addition that re-aligns the region jointly (``FusionConfig.realign_share``, as the service does):
     every submap free from its refined pose (the arriving ones from GPS), the GPS prior as ever, no frozen
     field; every tile reconstructed from the field the alignment trained there, or where it trained none
-    (``realign_iterations_fraction`` 0: registration only) from its own last reconstruction (``before``).
-    Updates ``poses`` and ``drifts``; returns the tiles' results, the alignment's fields and the addition's figures."""
+    (``realign_iterations_fraction`` 0: registration only) the map held where it stood and only the tiles
+    whose surface moved (``fusion.placement.settle_realignment``) reconstructed, each from its own last
+    reconstruction (``before``), the others kept. Updates ``poses`` and ``drifts``; returns the tiles'
+    results, the alignment's fields and the addition's figures."""
     from fusion.align import align_region
 
     cfg = ctx.config
     specs = [TileSpec(i, j, ctx.tile_size) for i, j in keys]
-    result = align_region([replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=True) for s in submaps],
-                          specs, cfg.for_realignment())
-    moved = _tile_moves(submaps, poses, result.poses, ctx.tile_size)
-    poses |= result.poses
+    inputs = [replace(s.input, pose_init=poses.get(s.input.id, s.pose_gps), free=True) for s in submaps]
+    result = align_region(inputs, specs, cfg.for_realignment())
+    new_poses = dict(result.poses)
+    kept: list[tuple[int, int]] = []
+    motion: dict[tuple[int, int], float] = {}
+    if not result.fields:
+        new_poses, kept, motion = settle_realignment(
+            inputs, poses, result.poses, [k for k in keys if k in before], tile_size=ctx.tile_size,
+            band_m=cfg.refusion_band_m, hold=cfg.realign_hold, keep_m=cfg.realign_keep_m,
+            drifts_before=drifts, drifts_after=result.drifts)
+    poses |= new_poses
     drifts.clear()
     drifts |= result.drifts
-    fused = reconstruct_tiles(submaps, keys, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields,
+    again = [k for k in keys if k not in kept]
+    fused = reconstruct_tiles(submaps, again, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields,
                               previous=None if result.fields else before, drifts=drifts)
+    fused |= {k: before[k] for k in kept}
     return fused, dict(result.fields), {
-        "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused),
-        "refused": [list(k) for k in sorted(fused)], "alignment": result.metrics, "tile_moved_m": moved,
-    } | _recon_times(fused)
-
-
-def _tile_moves(submaps: list[LoadedSubmap], before: dict[str, Pose], after: dict[str, Pose], tile_size: float
-                ) -> dict[str, float | None]:
-    """Per tile ("i_j"): the farthest any held submap's vertex in it moved from ``before`` to ``after`` (m);
-    None where a submap new to the map (no ``before`` pose) has surface. What a re-alignment changed where."""
-    out: dict[str, float] = {}
-    for s in submaps:
-        v = np.asarray(s.input.mesh.vertices, np.float64)[::10]
-        new = after.get(s.input.id)
-        if new is None or not len(v):
-            continue
-        p1 = new.apply(v)
-        old = before.get(s.input.id)
-        d = np.linalg.norm(p1 - old.apply(v), axis=1) if old is not None else np.full(len(v), np.inf)
-        cells = np.floor(p1[:, :2] / tile_size).astype(np.int64)
-        for (i, j), dist in zip(map(tuple, cells), d, strict=True):
-            key = f"{i}_{j}"
-            out[key] = max(out.get(key, 0.0), float(dist))
-    return {k: v if np.isfinite(v) else None for k, v in out.items()}  # None: new data there
+        "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused) - len(kept),
+        "refused": [list(k) for k in sorted(set(fused) - set(kept))], "kept": [list(k) for k in kept],
+        "alignment": result.metrics,
+        "tile_moved_m": {f"{i}_{j}": (round(d, 4) if math.isfinite(d) else None) for (i, j), d in sorted(motion.items())},
+    } | _recon_times({k: v for k, v in fused.items() if k not in kept})
 
 
 def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, config: Any = None) -> dict[str, Any]:

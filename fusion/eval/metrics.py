@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fusion.placement import umeyama
 from fusion.types import FusedMesh, Pose, SemanticMesh, rotation_angle_deg
 
 DEFAULT_D = 0.2  # metres (paper: d = 20 cm)
@@ -126,22 +127,6 @@ def semantic_f1(pred: FusedMesh | PointSet, gt: FusedMesh | SemanticMesh | Point
         per_class[k] = (prec, rec, _f(prec, rec))
     mean = float(np.mean([v[2] for v in per_class.values()])) if per_class else 0.0
     return mean, per_class
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Least-squares (R, t, s) with ``dst ≈ s · R · src + t`` for point sets (n, 3) (Umeyama 1991)."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)
-    u, sig, vt = np.linalg.svd(cov)
-    s_fix = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        s_fix[2, 2] = -1
-    r = u @ s_fix @ vt
-    var = (xs**2).sum() / len(src)
-    scale = float(np.trace(np.diag(sig) @ s_fix) / var) if with_scale and var > 0 else 1.0
-    return r, mu_d - scale * r @ mu_s, scale
 
 
 def gauge_alignment(estimated: list[Pose], truth: list[Pose],

@@ -162,6 +162,17 @@ def hand_over(
     return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 
+def settle(db: Session, i: int, j: int, *, owner: str, now: datetime) -> bool:
+    """A re-alignment left the tile's surface where its mesh has it (``fusion.placement``): from ``owner``'s
+    lease back to ``fused`` with its current version, if it has one and no upload arrived since it was
+    fused; False otherwise (or when the lease is no longer ours): nothing written."""
+    return _changed(db.execute(
+        _update(i, j, Tile.lease_owner == owner, Tile.version > 0, Tile.dirty_generation == Tile.fused_generation)
+        .values(state=TileState.fused.value, lease_owner=None, lease_until=None, progress=1.0, dirty_since=None,
+                last_error=None, updated_at=now)
+    ))
+
+
 def finish(
     db: Session, i: int, j: int, *, owner: str, generation: int, started_at: datetime, now: datetime,
     new_version: bool, pending: bool = False, field_sha256: str | None = None,

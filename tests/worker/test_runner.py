@@ -416,3 +416,70 @@ def test_a_submap_aligned_without_a_drift_correction_has_none(env: Any, monkeypa
         assert row.pose_refined is not None and row.drift_refined is None
         sid = row.id
     assert env.get(f"/v1/submaps/{sid}").json()["drift_refined"] is None
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_not_move(
+    tmp_path: Any, monkeypatch: pytest.MonkeyPatch, hold: bool
+) -> None:
+    """A joint re-alignment by registration alone with every submap free moves the whole map by whatever the
+    GPS prior lets it (here the fake's 0.5 m): held, the refined poses stand where they stood (the new
+    session's moves with them), and tile (1, 0), which the new session does not reach and whose surface did
+    not move, goes back to ``fused`` with its mesh (no reconstruct job, same version); tile (0, 0), with the
+    new session, is reconstructed. Not held (``realign_hold`` off), every tile moved: both reconstructed.
+    A tile an upload reached since its fusion is reconstructed though its surface stood still."""
+    from fusion.config import FusionConfig
+    from service.store.models import Submap
+    from worker import inputs
+
+    tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=0.0, realign_hold=hold)
+    monkeypatch.setattr(inputs, "fusion_config", lambda settings: tiny)
+    monkeypatch.setattr(runner, "_align", FakeAlign(shift=0.5))
+    monkeypatch.setattr(runner, "_fuse", FakeFusion())
+    with in_process(tmp_path) as env:
+        ids = {}
+
+        def add(session: str, x: float) -> list[FusionJob]:
+            ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
+            with env.db() as db:
+                schedule.request_fusion(db, 0, 0, settings=env.settings)
+            return _drain(env)
+
+        def pose_x() -> dict[str, float]:
+            with env.db() as db:
+                return {k: db.get(Submap, v).pose_refined["t"][0] for k, v in ids.items()}
+
+        for session, x in [("a", 10.0), ("b", 12.0), ("link", 50.0), ("c", 80.0)]:  # link reaches both tiles
+            ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
+        add("base", 14.0)
+        add("d", 16.0)  # tracked against the map
+        assert pose_x() == {"a": 10.5, "b": 12.5, "link": 50.5, "c": 80.5, "base": 14.5, "d": 16.5}
+        version = env.get("/v1/tiles/1/0").json()["version"]
+
+        third = add("e", 18.0)  # 2 of 6 sessions incremental: re-aligned jointly, every submap free
+        job = third[0]
+        assert (job.kind, job.realign, job.tiles) == ("align", True, [[0, 0], [1, 0]])
+        recon = sorted((j.tile_i, j.tile_j) for j in third[1:])
+        tile = env.get("/v1/tiles/1/0").json()
+        if hold:
+            assert pose_x() == pytest.approx({"a": 10.5, "b": 12.5, "link": 50.5, "c": 80.5, "base": 14.5, "d": 16.5,
+                                              "e": 18.0})
+            assert job.metrics["tile_moved_m"]["0_0"] is None  # the new session is there
+            assert job.metrics["tile_moved_m"]["1_0"] == pytest.approx(0.0, abs=1e-6)
+            assert job.metrics["kept_tiles"] == [[1, 0]] and recon == [(0, 0)]
+            assert (tile["state"], tile["version"]) == ("fused", version)
+        else:
+            assert pose_x()["a"] == 11.0 and job.metrics["tile_moved_m"]["1_0"] == pytest.approx(0.5)
+            assert job.metrics["kept_tiles"] == [] and recon == [(0, 0), (1, 0)]
+            assert (tile["state"], tile["version"]) == ("fused", version + 1)
+
+        with env.db() as db:  # poses changed elsewhere: tile (1, 0) is owed a fusion, it cannot be settled
+            tiles.mark_dirty(db, [(1, 0)], utcnow(), upload=False)
+            db.commit()
+        for n in range(6):  # sessions tracked against the map until a third of them were: re-aligned again
+            later = add(f"s{n}", 20.0 + n)
+            if later[0].realign:
+                break
+        assert later[0].realign and later[0].metrics["kept_tiles"] == []
+        assert sorted((j.tile_i, j.tile_j) for j in later[1:]) == [(0, 0), (1, 0)]
+        assert env.get("/v1/tiles/1/0").json()["state"] == "fused"

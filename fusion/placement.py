@@ -1,0 +1,130 @@
+"""The map's placement across a joint re-alignment, and the tiles a re-alignment changed (torch-free).
+
+A joint re-alignment (``FusionConfig.realign_share``) frees every submap of a region from its refined
+pose. The data fix the submaps relative to each other; where the map stands as a whole (its gauge) is
+fixed only by the weak GPS prior, summed over every submap, so each re-alignment moves the whole map
+by about the prior's uncertainty: 0.2-0.4 m on the bench's fleets, against a few cm of reshaping away
+from the new session (``docs/METHOD_LOG.md``, "Holding the map's placement"). A served map that jumps
+by that on every re-alignment makes every tile's mesh stale, though most of them did not change shape.
+
+:func:`hold_placement` moves a re-alignment's poses rigidly, all together, so that the submaps the map
+held before stand, in least squares over their surface, where they stood; :func:`tile_motion` then says
+how far each tile's surface moved, and :func:`settle_realignment` which tiles keep their mesh.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from fusion.drift import Drift
+from fusion.types import Pose, SubmapInput
+
+Tile = tuple[int, int]
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares (R, t, s) with ``dst ≈ s · R · src + t`` for point sets (n, 3) (Umeyama 1991)."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    u, sig, vt = np.linalg.svd(cov)
+    s_fix = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s_fix[2, 2] = -1
+    r = u @ s_fix @ vt
+    var = (xs**2).sum() / len(src)
+    scale = float(np.trace(np.diag(sig) @ s_fix) / var) if with_scale and var > 0 else 1.0
+    return r, mu_d - scale * r @ mu_s, scale
+
+
+def _shape(submap: SubmapInput, drift: Drift | None) -> np.ndarray:
+    """The submap's vertices (local frame) as its drift correction, if any, shapes them."""
+    v = np.asarray(submap.mesh.vertices, np.float64)
+    return v if drift is None or drift.is_identity() else drift.apply(v)
+
+
+def hold_placement(submaps: Sequence[SubmapInput], before: Mapping[str, Pose], after: Mapping[str, Pose],
+                   drifts_before: Mapping[str, Drift] | None = None, drifts_after: Mapping[str, Drift] | None = None,
+                   every: int = 10) -> dict[str, Pose]:
+    """``after`` (every pose of it) moved by the one map-frame rigid transform that carries the surface of
+    the submaps in both ``before`` and ``after`` (every ``every``-th vertex, shaped by its drift correction
+    before and after) from where ``after`` puts it to where ``before`` had it, in least squares. The
+    relative poses are untouched; submaps new to the map move with the rest. ``after`` itself where
+    fewer than 3 such vertices exist."""
+    drifts_before, drifts_after = drifts_before or {}, drifts_after or {}
+    src, dst = [], []
+    for s in submaps:
+        if s.id in before and s.id in after:
+            src.append(after[s.id].apply(_shape(s, drifts_after.get(s.id))[::every]))
+            dst.append(before[s.id].apply(_shape(s, drifts_before.get(s.id))[::every]))
+    if sum(len(p) for p in src) < 3:
+        return dict(after)
+    r, t, _ = umeyama(np.concatenate(src), np.concatenate(dst))
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = r, t
+    hold = Pose.from_matrix(m)
+    return {k: hold.compose(p) for k, p in after.items()}
+
+
+def _tiles_near(xy: np.ndarray, tile_size: float, band_m: float) -> list[np.ndarray]:
+    """Per point (n, 2), the tiles whose square grown by ``band_m`` holds it, as up to four (n, 2) index
+    arrays (``band_m`` < ``tile_size``: a point is near at most two tiles along each axis)."""
+    lo = np.floor((xy - band_m) / tile_size).astype(np.int64)
+    hi = np.floor((xy + band_m) / tile_size).astype(np.int64)
+    return [np.stack([a[:, 0], b[:, 1]], axis=1) for a in (lo, hi) for b in (lo, hi)]
+
+
+def tile_motion(submaps: Sequence[SubmapInput], before: Mapping[str, Pose], after: Mapping[str, Pose],
+                tile_size: float, band_m: float, drifts_before: Mapping[str, Drift] | None = None,
+                drifts_after: Mapping[str, Drift] | None = None) -> dict[Tile, float]:
+    """Per tile: the farthest any vertex of a submap in ``after`` moved from ``before`` (m), over the
+    vertices within ``band_m`` (xy) of the tile at either pose; ``inf`` where a submap not in ``before``
+    (new to the map) has a vertex. Tiles no such vertex is near are absent."""
+    drifts_before, drifts_after = drifts_before or {}, drifts_after or {}
+    out: dict[Tile, float] = {}
+    for s in submaps:
+        if s.id not in after or not len(s.mesh.vertices):
+            continue
+        now = after[s.id].apply(_shape(s, drifts_after.get(s.id)))
+        if s.id in before:
+            was = before[s.id].apply(_shape(s, drifts_before.get(s.id)))
+            dist = np.linalg.norm(now - was, axis=1)
+            places = [now[:, :2], was[:, :2]]
+        else:
+            dist, places = np.full(len(now), math.inf), [now[:, :2]]
+        for xy in places:
+            for idx in _tiles_near(xy, tile_size, band_m):
+                base = idx.min(axis=0)
+                span = int(idx[:, 1].max() - base[1]) + 1
+                keys, inverse = np.unique((idx[:, 0] - base[0]) * span + (idx[:, 1] - base[1]), return_inverse=True)
+                far = np.full(len(keys), -1.0)
+                np.maximum.at(far, inverse, dist)
+                for key, d in zip(keys.tolist(), far.tolist(), strict=True):
+                    t = (int(base[0]) + key // span, int(base[1]) + key % span)
+                    out[t] = max(out.get(t, 0.0), d)
+    return out
+
+
+def settle_realignment(
+    submaps: Sequence[SubmapInput], before: Mapping[str, Pose], after: Mapping[str, Pose], tiles: Sequence[Tile],
+    *, tile_size: float, band_m: float, hold: bool, keep_m: float,
+    drifts_before: Mapping[str, Drift] | None = None, drifts_after: Mapping[str, Drift] | None = None,
+) -> tuple[dict[str, Pose], list[Tile], dict[Tile, float]]:
+    """The poses a registration-only re-alignment commits and the tiles of ``tiles`` that keep their mesh.
+
+    ``before``: the refined poses the map held (submaps new to it have none); ``after``: the
+    re-alignment's poses of its free submaps. ``hold`` (and every submap of ``submaps`` free, i.e. in
+    ``after``: held submaps would pin the map already): :func:`hold_placement`. A tile keeps its mesh
+    where no submap new to the map comes within ``band_m`` of it and no other surface near it moved by
+    ``keep_m`` or more (0: every tile is reconstructed again). Returns the poses, the tiles kept and the
+    motion per tile (:func:`tile_motion`, after the hold)."""
+    poses = dict(after)
+    if hold and all(s.id in after for s in submaps):
+        poses = hold_placement(submaps, before, after, drifts_before, drifts_after)
+    motion = tile_motion(submaps, before, poses, tile_size, band_m, drifts_before, drifts_after)
+    keep = sorted(t for t in tiles if keep_m > 0 and motion.get(t, 0.0) < keep_m)
+    return poses, keep, motion
