@@ -70,42 +70,58 @@ def hold_placement(submaps: Sequence[SubmapInput], before: Mapping[str, Pose], a
     return {k: hold.compose(p) for k, p in after.items()}
 
 
-def _tiles_near(xy: np.ndarray, tile_size: float, band_m: float) -> list[np.ndarray]:
-    """Per point (n, 2), the tiles whose square grown by ``band_m`` holds it, as up to four (n, 2) index
-    arrays (``band_m`` < ``tile_size``: a point is near at most two tiles along each axis)."""
-    lo = np.floor((xy - band_m) / tile_size).astype(np.int64)
-    hi = np.floor((xy + band_m) / tile_size).astype(np.int64)
-    return [np.stack([a[:, 0], b[:, 1]], axis=1) for a in (lo, hi) for b in (lo, hi)]
+def _face_tiles(xy: np.ndarray, faces: np.ndarray, tile_size: float, band_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per face, the lowest and highest tile (i, j) its xy bounding box grown by ``band_m`` meets: ``(F, 2)``
+    each, as ``fusion.tiles.surface_tiles`` counts a face in a tile."""
+    lo_v = np.floor((xy - band_m) / tile_size).astype(np.int64)
+    hi_v = np.floor((xy + band_m) / tile_size).astype(np.int64)
+    return lo_v[faces].min(axis=1), hi_v[faces].max(axis=1)
+
+
+def _max_per_tile(lo: np.ndarray, hi: np.ndarray, value: np.ndarray, out: dict[Tile, float]) -> None:
+    """``out[tile]`` raised to the largest ``value`` of the faces whose tile box ``lo``..``hi`` holds it."""
+    small = np.all(hi - lo <= 1, axis=1)  # the usual face: at most two tiles along each axis
+    for a in (lo, hi):
+        for b in (lo, hi):
+            idx = np.stack([a[small, 0], b[small, 1]], axis=1)
+            if not len(idx):
+                continue
+            base = idx.min(axis=0)
+            span = int(idx[:, 1].max() - base[1]) + 1
+            keys, inverse = np.unique((idx[:, 0] - base[0]) * span + (idx[:, 1] - base[1]), return_inverse=True)
+            far = np.full(len(keys), -1.0)
+            np.maximum.at(far, inverse, value[small])
+            for key, d in zip(keys.tolist(), far.tolist(), strict=True):
+                t = (int(base[0]) + key // span, int(base[1]) + key % span)
+                out[t] = max(out.get(t, 0.0), d)
+    for (a0, a1), (b0, b1), d in zip(lo[~small].tolist(), hi[~small].tolist(), value[~small].tolist(), strict=True):
+        for i in range(a0, b0 + 1):
+            for j in range(a1, b1 + 1):
+                out[(i, j)] = max(out.get((i, j), 0.0), d)
 
 
 def tile_motion(submaps: Sequence[SubmapInput], before: Mapping[str, Pose], after: Mapping[str, Pose],
                 tile_size: float, band_m: float, drifts_before: Mapping[str, Drift] | None = None,
                 drifts_after: Mapping[str, Drift] | None = None) -> dict[Tile, float]:
-    """Per tile: the farthest any vertex of a submap in ``after`` moved from ``before`` (m), over the
-    vertices within ``band_m`` (xy) of the tile at either pose; ``inf`` where a submap not in ``before``
-    (new to the map) has a vertex. Tiles no such vertex is near are absent."""
+    """Per tile: the farthest any vertex of a face of a submap in ``after`` moved from ``before`` (m), over
+    the faces that reach the tile grown by ``band_m`` at either pose (as ``fusion.tiles.surface_tiles``
+    counts them); ``inf`` where a submap not in ``before`` (new to the map) has such a face. Tiles no face
+    reaches are absent."""
     drifts_before, drifts_after = drifts_before or {}, drifts_after or {}
     out: dict[Tile, float] = {}
     for s in submaps:
-        if s.id not in after or not len(s.mesh.vertices):
+        faces = np.asarray(s.mesh.faces)
+        if s.id not in after or not len(faces):
             continue
         now = after[s.id].apply(_shape(s, drifts_after.get(s.id)))
         if s.id in before:
             was = before[s.id].apply(_shape(s, drifts_before.get(s.id)))
-            dist = np.linalg.norm(now - was, axis=1)
+            moved = np.linalg.norm(now - was, axis=1)[faces].max(axis=1)
             places = [now[:, :2], was[:, :2]]
         else:
-            dist, places = np.full(len(now), math.inf), [now[:, :2]]
+            moved, places = np.full(len(faces), math.inf), [now[:, :2]]
         for xy in places:
-            for idx in _tiles_near(xy, tile_size, band_m):
-                base = idx.min(axis=0)
-                span = int(idx[:, 1].max() - base[1]) + 1
-                keys, inverse = np.unique((idx[:, 0] - base[0]) * span + (idx[:, 1] - base[1]), return_inverse=True)
-                far = np.full(len(keys), -1.0)
-                np.maximum.at(far, inverse, dist)
-                for key, d in zip(keys.tolist(), far.tolist(), strict=True):
-                    t = (int(base[0]) + key // span, int(base[1]) + key % span)
-                    out[t] = max(out.get(t, 0.0), d)
+            _max_per_tile(*_face_tiles(xy, faces, tile_size, band_m), moved, out)
     return out
 
 

@@ -216,7 +216,7 @@ def commit_alignment(
     its job, ``queued``, with the blob of the field trained there, if any, which replaces the tile's
     reconstruction field as its warm start), the align job ``succeeded``. A tile in ``kept`` (a re-alignment
     left its surface where its mesh has it: ``fusion.placement.settle_realignment``) goes back to ``fused``
-    instead where no upload arrived since its last fusion (``tiles.settle``). Returns the outcome and the new
+    instead where nothing marked it since its last fusion (``tiles.settle``). Returns the outcome and the new
     jobs to enqueue."""
     now = utcnow()
     with factory() as db:

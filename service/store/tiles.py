@@ -164,8 +164,9 @@ def hand_over(
 
 def settle(db: Session, i: int, j: int, *, owner: str, now: datetime) -> bool:
     """A re-alignment left the tile's surface where its mesh has it (``fusion.placement``): from ``owner``'s
-    lease back to ``fused`` with its current version, if it has one and no upload arrived since it was
-    fused; False otherwise (or when the lease is no longer ours): nothing written."""
+    lease back to ``fused`` with its current version, if it has one and nothing marked the tile since that
+    fusion (no upload, no submap's pose changed elsewhere: the mesh was made from the poses the
+    re-alignment started from); False otherwise (or when the lease is no longer ours): nothing written."""
     return _changed(db.execute(
         _update(i, j, Tile.lease_owner == owner, Tile.version > 0, Tile.dirty_generation == Tile.fused_generation)
         .values(state=TileState.fused.value, lease_owner=None, lease_until=None, progress=1.0, dirty_since=None,
