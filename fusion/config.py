@@ -276,15 +276,20 @@ class FusionConfig:
     # (0.5, the default before: exact 1 0.980 / 0.787 / 0.091, camera 1 0.901 / 0.390 / 0.282). docs/METHOD_LOG.md,
     # "Additions by registration alone". In the twentieth session the same setting lost exact 0 sem F 0.054.
     realign_iterations_fraction: float = 0.0
-    # a re-alignment by registration alone (no field trained) keeps the map where it stood: its poses move
+    # a re-alignment by registration alone (no field trained) holds the map where it stood: its poses move
     # rigidly, all together, so that the submaps held before stand where they stood in least squares
-    # (``fusion.placement``; the data fix the submaps relative to each other, only the weak GPS prior fixes the
-    # whole map's place, and it moved the whole map 0.2-0.4 m per re-alignment); not where a held submap
-    # (reaching outside the region) pins the map already
-    realign_hold: bool = True
-    # ... and a tile then keeps its mesh where no new submap comes within ``refusion_band_m`` of it and no
-    # held surface near it moved by this much or more (m; 0: every tile reconstructed again). 0.05: a fifth
-    # of the extraction voxel, a quarter of the evaluation's 0.2 m
+    # (``fusion.placement``; not where a held submap reaching outside the region pins the map already). Off:
+    # the data fix the submaps relative to each other, the GPS prior the whole map's place, and a re-alignment
+    # with more sessions places it better; held, the placement freezes at the first alignment's estimate.
+    # Add_sessions, the fifth session re-aligning (thirty-second session; geo F / sem F / abs geo F / tiles
+    # re-fused): exact 1 off 0.984 / 0.766 / 0.971 / 8, on 0.984 / 0.759 / 0.582 / 5 (0.05 m); exact 0 and
+    # camera 0, on, re-fuse all 8 anyway (the re-alignment reshapes them by 0.05-0.58 m). docs/METHOD_LOG.md
+    realign_hold: bool = False
+    # a re-alignment by registration alone keeps a tile's mesh where no new submap comes within
+    # ``refusion_band_m`` of it and no surface near it moved by this much or more (m; 0: every tile
+    # reconstructed again): with the hold off, where submaps reaching outside the region pin the map. 0.05: a fifth of the
+    # extraction voxel, a quarter of the evaluation's 0.2 m; keep 0.05 vs 0 with the hold on, exact 1: sem F
+    # 0.759 vs 0.761, geo F 0.984 vs 0.985, the re-aligning addition 78 vs 91 s
     realign_keep_m: float = 0.05
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). 0 (default since
     # the twenty-fifth session): the new submaps placed by the registrations alone (the held submaps fixed), no

@@ -235,8 +235,11 @@ class JobPublic(BaseModel):
     tiles: list[TileIndex] = Field(description="Every tile the job covers: `[tile]`, or the region (align)")
     realign: bool = Field(
         False, description="align only: true when the job re-aligns the region jointly (the poses of its aligned "
-        "submaps may move and are rewritten; every tile of it is reconstructed), because a large share of the "
-        "region's sessions had been added incrementally, against a map they could not move")
+        "submaps may move and are rewritten), because a large share of the region's sessions had been added "
+        "incrementally, against a map they could not move. A tile the new sessions do not reach and whose "
+        "surface moved less than `realign_keep_m` (0.05 m) goes back to `fused` with its mesh "
+        "(`metrics.kept_tiles`; `metrics.tile_moved_m` per tile, null where a new submap is); every other tile "
+        "is reconstructed. With `realign_hold` (off by default) the whole map is first held where it stood")
     state: JobStateName
     trigger: Literal["auto", "operator"]
     progress: float
@@ -244,7 +247,9 @@ class JobPublic(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     error: str | None
-    metrics: dict[str, Any] | None
+    metrics: dict[str, Any] | None = Field(
+        description="What the job measured: align jobs list `reconstruct_jobs`, `kept_tiles`, `joined_tiles`, "
+        "`aligned_submaps`, losses and timing; reconstruct jobs the mesh's size, timing and `version`")
 
 
 class Health(BaseModel):

@@ -5,7 +5,8 @@ States (``../shared/API.md``): ``dirty`` → ``queued`` → ``fusing`` → ``fus
 when uploads arrived meanwhile, ``queued`` when the worker stopped, ``failed`` on an error);
 ``failed`` and ``fused`` tiles become ``dirty`` again with new submaps. A tile holding unaligned
 submaps goes through its region's align job first (``queued`` → ``fusing`` while it runs), which hands
-it to the tile's reconstruct job (→ ``queued``) when the poses are written.
+it to the tile's reconstruct job (→ ``queued``) when the poses are written, or, a re-alignment that left
+the tile's surface where its mesh has it, back to ``fused`` (:func:`settle`).
 
 Each transition is ONE conditional ``UPDATE … WHERE <expected state>``: its rowcount says whether
 *this* process made it, so several API processes and workers may act at once on PostgreSQL or SQLite
