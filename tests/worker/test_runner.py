@@ -266,6 +266,24 @@ def _drain(env: Any) -> list[FusionJob]:
     raise AssertionError("jobs keep coming")
 
 
+def _growing(env: Any, ids: dict[str, str]) -> tuple[Any, Any]:
+    """``add(session, x)``: upload one submap of a new session at (x, 10) (its id into ``ids``), ask for tile
+    (0, 0)'s fusion and run every job that follows (returned); ``pose_x()``: each submap's refined x."""
+    from service.store.models import Submap
+
+    def add(session: str, x: float) -> list[FusionJob]:
+        ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
+        with env.db() as db:
+            schedule.request_fusion(db, 0, 0, settings=env.settings)
+        return _drain(env)
+
+    def pose_x() -> dict[str, float]:
+        with env.db() as db:
+            return {k: db.get(Submap, v).pose_refined["t"][0] for k, v in ids.items()}
+
+    return add, pose_x
+
+
 @pytest.mark.parametrize("fraction", [0.5, 0.0])
 def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkeypatch: pytest.MonkeyPatch,
                                                            fraction: float) -> None:
@@ -285,17 +303,8 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
     monkeypatch.setattr(runner, "_align", align := FakeAlign(shift=0.5))  # a free pose moves 0.5 m along x
     monkeypatch.setattr(runner, "_fuse", fusion := FakeFusion())
     with in_process(tmp_path) as env:
-        ids = {}
-
-        def add(session: str, x: float) -> list[FusionJob]:
-            ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
-            with env.db() as db:
-                schedule.request_fusion(db, 0, 0, settings=env.settings)
-            return _drain(env)
-
-        def pose_x() -> dict[str, float]:
-            with env.db() as db:
-                return {k: db.get(Submap, v).pose_refined["t"][0] for k, v in ids.items()}
+        ids: dict[str, str] = {}
+        add, pose_x = _growing(env, ids)
 
         for session, x in [("a", 10.0), ("b", 12.0), ("c", 55.0)]:
             ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
@@ -429,7 +438,6 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
     new session, is reconstructed. Not held (``realign_hold`` off), every tile moved: both reconstructed.
     A tile an upload reached since its fusion is reconstructed though its surface stood still."""
     from fusion.config import FusionConfig
-    from service.store.models import Submap
     from worker import inputs
 
     tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=0.0, realign_hold=hold)
@@ -437,17 +445,8 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
     monkeypatch.setattr(runner, "_align", FakeAlign(shift=0.5))
     monkeypatch.setattr(runner, "_fuse", FakeFusion())
     with in_process(tmp_path) as env:
-        ids = {}
-
-        def add(session: str, x: float) -> list[FusionJob]:
-            ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
-            with env.db() as db:
-                schedule.request_fusion(db, 0, 0, settings=env.settings)
-            return _drain(env)
-
-        def pose_x() -> dict[str, float]:
-            with env.db() as db:
-                return {k: db.get(Submap, v).pose_refined["t"][0] for k, v in ids.items()}
+        ids: dict[str, str] = {}
+        add, pose_x = _growing(env, ids)
 
         for session, x in [("a", 10.0), ("b", 12.0), ("link", 50.0), ("c", 80.0)]:  # link reaches both tiles
             ids[session] = upload(env, session, 0, [x, 10.0, 0.0])["id"]
