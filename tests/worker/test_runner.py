@@ -436,7 +436,7 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
     session's moves with them), and tile (1, 0), which the new session does not reach and whose surface did
     not move, goes back to ``fused`` with its mesh (no reconstruct job, same version); tile (0, 0), with the
     new session, is reconstructed. Not held (``realign_hold`` off), every tile moved: both reconstructed.
-    A tile an upload reached since its fusion is reconstructed though its surface stood still."""
+    A tile marked since its fusion (a pose changed elsewhere) is reconstructed though its surface stood still."""
     from fusion.config import FusionConfig
     from worker import inputs
 
