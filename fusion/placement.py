@@ -5,7 +5,9 @@ pose. The data fix the submaps relative to each other; where the map stands as a
 fixed only by the weak GPS prior, summed over every submap, so each re-alignment moves the whole map
 by about the prior's uncertainty: 0.2-0.4 m on the bench's fleets, against a few cm of reshaping away
 from the new session (``docs/METHOD_LOG.md``, "Holding the map's placement"). A served map that jumps
-by that on every re-alignment makes every tile's mesh stale, though most of them did not change shape.
+by that on every re-alignment makes every tile's mesh stale, though most of them did not change shape;
+but the jump is a correction (more sessions, a better GPS average), and a held map keeps the placement
+of the sessions it was first aligned from (``FusionConfig.realign_hold``, off by default).
 
 :func:`hold_placement` moves a re-alignment's poses rigidly, all together, so that the submaps the map
 held before stand, in least squares over their surface, where they stood; :func:`tile_motion` then says

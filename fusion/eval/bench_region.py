@@ -296,9 +296,9 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     """An addition that re-aligns the region jointly (``FusionConfig.realign_share``, as the service does):
     every submap free from its refined pose (the arriving ones from GPS), the GPS prior as ever, no frozen
     field; every tile reconstructed from the field the alignment trained there, or where it trained none
-    (``realign_iterations_fraction`` 0: registration only) the map held where it stood and only the tiles
-    whose surface moved (``fusion.placement.settle_realignment``) reconstructed, each from its own last
-    reconstruction (``before``), the others kept. Updates ``poses`` and ``drifts``; returns the tiles'
+    (``realign_iterations_fraction`` 0: registration only) only the tiles whose surface moved
+    (``fusion.placement.settle_realignment``; with ``realign_hold`` the map first held where it stood)
+    reconstructed, each from its own last reconstruction (``before``), the others kept. Updates ``poses`` and ``drifts``; returns the tiles'
     results, the alignment's fields and the addition's figures."""
     from fusion.align import align_region
 
