@@ -282,8 +282,9 @@ class FusionConfig:
     # the data fix the submaps relative to each other, the GPS prior the whole map's place, and a re-alignment
     # with more sessions places it better; held, the placement freezes at the first alignment's estimate.
     # Add_sessions, the fifth session re-aligning (thirty-second session; geo F / sem F / abs geo F / tiles
-    # re-fused): exact 1 off 0.984 / 0.766 / 0.971 / 8, on 0.984 / 0.759 / 0.582 / 5 (0.05 m); exact 0 and
-    # camera 0, on, re-fuse all 8 anyway (the re-alignment reshapes them by 0.05-0.58 m). docs/METHOD_LOG.md
+    # re-fused): exact 1 off 0.984 / 0.766 / 0.971 / 8, on 0.984 / 0.759 / 0.582 / 5 (0.05 m); exact 0 off 0.982
+    # / 0.817 / 0.739 / 8, on 0.981 / 0.816 / 0.709 / 8; camera 0 off 0.784 / 0.349 / 0.751 / 8, on 0.782 / 0.352
+    # / 0.662 / 8 (the re-alignment reshapes those maps by 0.05-0.58 m per tile). docs/METHOD_LOG.md
     realign_hold: bool = False
     # a re-alignment by registration alone keeps a tile's mesh where no new submap comes within
     # ``refusion_band_m`` of it and no surface near it moved by this much or more (m; 0: every tile
