@@ -127,6 +127,12 @@ def tile_motion(submaps: Sequence[SubmapInput], before: Mapping[str, Pose], afte
     return out
 
 
+def motion_report(motion: Mapping[Tile, float]) -> dict[str, float | None]:
+    """:func:`tile_motion` as a job's or a bench row's figures: ``"i_j"`` → metres (4 decimals), None where
+    a new submap is."""
+    return {f"{i}_{j}": round(d, 4) if math.isfinite(d) else None for (i, j), d in sorted(motion.items())}
+
+
 def settle_realignment(
     submaps: Sequence[SubmapInput], before: Mapping[str, Pose], after: Mapping[str, Pose], tiles: Sequence[Tile],
     *, tile_size: float, band_m: float, hold: bool, keep_m: float,

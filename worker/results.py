@@ -231,9 +231,9 @@ def commit_alignment(
                         surface_tiles=[list(t) for t in surface[submap_id]] if surface and submap_id in surface else None)
             )
         joined = _join_surface_tiles(db, surface or {}, set(claim.tiles), now)
-        jobs, settled = [], []
+        jobs, settled, keep = [], [], set(kept or ())
         for i, j in claim.tiles:
-            if (i, j) in set(kept or ()) and tiles.settle(db, i, j, owner=claim.owner, now=now):
+            if (i, j) in keep and tiles.settle(db, i, j, owner=claim.owner, now=now):
                 settled.append([i, j])
                 continue
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,

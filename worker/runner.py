@@ -13,7 +13,6 @@ the tile state (``fused``, or ``dirty`` when uploads arrived during the fusion) 
 from __future__ import annotations
 
 import logging
-import math
 import os
 import socket
 import time
@@ -25,7 +24,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.drift import Drift, corrected_input
 from fusion.errors import FusionError, FusionLibraryError
-from fusion.placement import settle_realignment
+from fusion.placement import motion_report, settle_realignment
 from fusion.tiles import surface_tiles
 from fusion.types import FusedMesh, FusionResult, Pose
 from service.broker import enqueue
@@ -124,8 +123,9 @@ def _align(
 
 def _settle(inputs: RegionInputs, poses: dict[str, Pose], drifts: dict[str, Drift], keys: list[tuple[int, int]],
             tile_size: float) -> tuple[dict[str, Pose], list[tuple[int, int]], dict[tuple[int, int], float]]:
-    """A re-alignment by registration alone (``fusion.placement.settle_realignment``): its poses with the map
-    held where the refined poses had it, the tiles whose surface did not move, and each tile's motion."""
+    """A re-alignment by registration alone (``fusion.placement.settle_realignment``): its poses (with
+    ``realign_hold``, the map held where the refined poses had it), the tiles whose surface did not move, and
+    each tile's motion."""
     config = inputs.config
     before = {row.id: Pose.from_json(row.pose_refined) for row, _, free in inputs.rows if free and row.pose_refined}
     shaped = {row.id: Drift.from_json(row.drift_refined) for row, _, free in inputs.rows
@@ -153,10 +153,9 @@ def _run_alignment(
         frozen = {key: blobs.get(sha) for key, sha in inputs.fields.items()}
         poses, align_metrics, trained, drifts = _align(inputs, keeper, frozen)
         metrics.update(align_metrics)
-        if claim.realign and not trained:  # by registration alone: the map held, unmoved tiles kept
+        if claim.realign and not trained:  # by registration alone: tiles it did not move keep their mesh
             poses, kept, moved = _settle(inputs, poses, drifts, claim.tiles, settings.tile_size)
-            metrics["tile_moved_m"] = {f"{i}_{j}": round(d, 4) if math.isfinite(d) else None
-                                       for (i, j), d in sorted(moved.items())}
+            metrics["tile_moved_m"] = motion_report(moved)
         posed = [corrected_input(s, drifts.get(s.id)) for s in inputs.submaps if s.id in poses]
         surface = {s.id: surface_tiles(s.mesh.vertices, s.mesh.faces, poses[s.id], settings.tile_size,
                                        inputs.config.refusion_band_m) for s in posed}

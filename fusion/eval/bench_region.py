@@ -20,7 +20,6 @@ would more than double the CPU time and are not evaluated).
 from __future__ import annotations
 
 import json
-import math
 import tempfile
 import time
 from collections.abc import Callable
@@ -38,7 +37,7 @@ from fusion.drift import Drift, corrected_input
 from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.offline import LoadedSubmap, fuse_tiles, reconstruct_tiles
-from fusion.placement import settle_realignment
+from fusion.placement import motion_report, settle_realignment
 from fusion.regions import needs_realignment
 from fusion.tiles import surface_tiles, tile_bounds
 from fusion.types import FusedMesh, FusionResult, Pose, TileSpec
@@ -325,7 +324,7 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
         "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused) - len(kept),
         "refused": [list(k) for k in sorted(set(fused) - set(kept))], "kept": [list(k) for k in kept],
         "alignment": result.metrics,
-        "tile_moved_m": {f"{i}_{j}": (round(d, 4) if math.isfinite(d) else None) for (i, j), d in sorted(motion.items())},
+        "tile_moved_m": motion_report(motion),
     } | _recon_times({k: v for k, v in fused.items() if k not in kept})
 
 
