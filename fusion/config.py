@@ -292,6 +292,11 @@ class FusionConfig:
     # extraction voxel, a quarter of the evaluation's 0.2 m; keep 0.05 vs 0 with the hold on, exact 1: sem F
     # 0.759 vs 0.761, geo F 0.984 vs 0.985, the re-aligning addition 78 vs 91 s
     realign_keep_m: float = 0.05
+    # a re-alignment by registration alone moves each tile's surface by decimetres (mostly the map's
+    # placement: ``realign_hold``) and reshapes it by centimetres; the tile's re-fusion starts from its last
+    # field carried by the tile's rigid motion (``fusion.placement.tile_carry``, ``fusion.field.moved_state``),
+    # centimetres from its surface instead of decimetres. False: from the field where it was trained
+    refusion_carry: bool = True
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). 0 (default since
     # the twenty-fifth session): the new submaps placed by the registrations alone (the held submaps fixed), no
     # frozen field tracked; a tile new to the map then starts cold. add_sessions, fourth session added, 240 -> 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import math
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -20,15 +21,19 @@ from fusion.runtime import tune_allocator
 
 
 class TileNormalizer(nn.Module):
-    """Affine map of map-frame points in the box ``[lo, hi]`` (metres) to [0, 1]³ (per-axis scaling)."""
+    """Affine map of map-frame points in the box ``[lo, hi]`` (metres) to [0, 1]³ (per-axis scaling),
+    after the rigid ``frame`` (4, 4): the frame the field was trained in, from the one it is queried in
+    (identity, unless the field was carried along with its surface: :func:`moved_state`)."""
 
     lo: Tensor  # (3,) buffer
     extent: Tensor  # (3,) buffer
+    frame: Tensor  # (4, 4) buffer
 
     def __init__(self, lo: Tensor, hi: Tensor) -> None:
         super().__init__()
         self.register_buffer("lo", lo.float().clone())  # (3,)
         self.register_buffer("extent", (hi - lo).float().clone())  # (3,)
+        self.register_buffer("frame", torch.eye(4))
 
     @property
     def aspect(self) -> tuple[float, float, float]:
@@ -41,7 +46,8 @@ class TileNormalizer(nn.Module):
 
     def forward(self, x_map: Tensor) -> Tensor:
         """``(n, 3)`` map-frame metres → ``(n, 3)`` normalised."""
-        return (x_map - self.lo) / self.extent
+        f = self.frame
+        return (x_map @ f[:3, :3].T + f[:3, 3] - self.lo) / self.extent
 
 
 class PositionalEncoding(nn.Module):
@@ -149,11 +155,21 @@ class SemanticSDFField(nn.Module):
 
 
 def field_from_state(state: dict[str, Tensor], config: FusionConfig) -> SemanticSDFField:
-    """A tile field (tile frame) rebuilt from a saved ``state_dict`` (its box travels in ``norm.*``)."""
+    """A tile field (tile frame) rebuilt from a saved ``state_dict`` (its box travels in ``norm.*``; a state
+    saved before fields had a ``norm.frame`` was trained where it is queried)."""
     lo = state["norm.lo"].float()
     f = SemanticSDFField(config, lo, lo + state["norm.extent"].float())
-    f.load_state_dict(state)
+    f.load_state_dict({"norm.frame": torch.eye(4)} | state)
     return f
+
+
+def moved_state(state: dict[str, Tensor], motion: np.ndarray) -> dict[str, Tensor]:
+    """``state``'s field carried by the rigid ``motion`` (4, 4, tile frame): the new field at ``motion · x``
+    is the old one at ``x``, as for a surface that moved by ``motion`` (a re-alignment's poses: the tile's
+    next reconstruction then starts from its last field where its surface now is). The grid and the
+    heads are shared with ``state``, not copied."""
+    frame = state.get("norm.frame", torch.eye(4)).double().numpy()
+    return state | {"norm.frame": torch.from_numpy(frame @ np.linalg.inv(np.asarray(motion, np.float64))).float()}
 
 
 def field_state(field: SemanticSDFField) -> dict[str, Tensor]:

@@ -32,15 +32,20 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
     xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)
+    r, sig, s_fix = _rotation(xd.T @ xs / len(src))
+    var = (xs**2).sum() / len(src)
+    scale = float(np.trace(np.diag(sig) @ s_fix) / var) if with_scale and var > 0 else 1.0
+    return r, mu_d - scale * r @ mu_s, scale
+
+
+def _rotation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The proper rotation closest to the cross-covariance ``cov`` (3, 3) (no reflection), its singular
+    values and the sign fix."""
     u, sig, vt = np.linalg.svd(cov)
     s_fix = np.eye(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
         s_fix[2, 2] = -1
-    r = u @ s_fix @ vt
-    var = (xs**2).sum() / len(src)
-    scale = float(np.trace(np.diag(sig) @ s_fix) / var) if with_scale and var > 0 else 1.0
-    return r, mu_d - scale * r @ mu_s, scale
+    return u @ s_fix @ vt, sig, s_fix
 
 
 def _shape(submap: SubmapInput, drift: Drift | None) -> np.ndarray:
@@ -124,6 +129,66 @@ def tile_motion(submaps: Sequence[SubmapInput], before: Mapping[str, Pose], afte
             moved, places = np.full(len(faces), math.inf), [now[:, :2]]
         for xy in places:
             _max_per_tile(*_face_tiles(xy, faces, tile_size, band_m), moved, out)
+    return out
+
+
+def tile_carry(submaps: Sequence[SubmapInput], before: Mapping[str, Pose], after: Mapping[str, Pose],
+               tiles: Sequence[Tile], tile_size: float, band_m: float, drifts_before: Mapping[str, Drift] | None = None,
+               drifts_after: Mapping[str, Drift] | None = None) -> dict[Tile, np.ndarray]:
+    """Per tile of ``tiles``: the map-frame rigid motion (4, 4) that carries, in least squares, the surface
+    its field was trained on (the faces of the submaps in both ``before`` and ``after`` that reach the tile
+    grown by ``band_m`` at their ``before`` pose, one point per face: its centre) to where ``after`` puts it,
+    in the tile's frame (the map frame shifted by the tile's lower corner, as its field is).
+    A re-alignment moves a whole map by decimetres (its placement) and reshapes it by centimetres; carried
+    by this motion (``fusion.field.moved_state``), a tile's last field starts its re-fusion centimetres from
+    its surface instead of decimetres. Tiles with fewer than 3 such faces are absent."""
+    drifts_before, drifts_after = drifts_before or {}, drifts_after or {}
+    want = {t: k for k, t in enumerate(tiles)}
+    if not want:
+        return {}
+    keys = np.array(list(want), np.int64)
+    base, span = keys.min(axis=0), keys.max(axis=0) - keys.min(axis=0) + 1
+    lookup = np.full(span, -1, np.int64)  # tile (i, j) - base → its index in ``tiles``
+    lookup[keys[:, 0] - base[0], keys[:, 1] - base[1]] = list(want.values())
+
+    def index(ti: np.ndarray, tj: np.ndarray) -> np.ndarray:
+        a, b = ti - base[0], tj - base[1]
+        inside = (a >= 0) & (a < span[0]) & (b >= 0) & (b < span[1])
+        return np.where(inside, lookup[np.clip(a, 0, span[0] - 1), np.clip(b, 0, span[1] - 1)], -1)
+
+    count = np.zeros(len(tiles))
+    sum_s, sum_d, cross = np.zeros((len(tiles), 3)), np.zeros((len(tiles), 3)), np.zeros((len(tiles), 3, 3))
+    for s in submaps:
+        faces = np.asarray(s.mesh.faces)
+        if s.id not in before or s.id not in after or not len(faces):
+            continue
+        was = before[s.id].apply(_shape(s, drifts_before.get(s.id)))
+        now = after[s.id].apply(_shape(s, drifts_after.get(s.id)))
+        src, dst = was[faces].mean(axis=1), now[faces].mean(axis=1)
+        lo, hi = _face_tiles(was[:, :2], faces, tile_size, band_m)
+        # the tiles at the corners of each face's tile box, each once (a face longer than a tile, which
+        # also meets the tiles between, is fitted in its corner tiles only)
+        corners = [(lo[:, 0], lo[:, 1], True), (lo[:, 0], hi[:, 1], hi[:, 1] != lo[:, 1]),
+                   (hi[:, 0], lo[:, 1], hi[:, 0] != lo[:, 0]),
+                   (hi[:, 0], hi[:, 1], (hi[:, 0] != lo[:, 0]) & (hi[:, 1] != lo[:, 1]))]
+        for ti, tj, new in corners:
+            idx = index(ti[new], tj[new])
+            sel = idx >= 0
+            idx, a, b = idx[sel], src[new][sel], dst[new][sel]
+            np.add.at(count, idx, 1.0)
+            np.add.at(sum_s, idx, a)
+            np.add.at(sum_d, idx, b)
+            np.add.at(cross, idx, b[:, :, None] * a[:, None, :])
+    out: dict[Tile, np.ndarray] = {}
+    for t, k in want.items():
+        if count[k] < 3:
+            continue
+        mu_s, mu_d = sum_s[k] / count[k], sum_d[k] / count[k]
+        r, _, _ = _rotation(cross[k] / count[k] - np.outer(mu_d, mu_s))
+        corner = np.array([t[0] * tile_size, t[1] * tile_size, 0.0])  # x_tile = x_map - corner
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = r, mu_d - r @ mu_s + r @ corner - corner
+        out[t] = m
     return out
 
 

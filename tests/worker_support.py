@@ -121,12 +121,17 @@ class _FakeStage:
 
 class FakeFusion(_FakeStage):
     """Stands in for the tile reconstruction (``worker.runner._fuse``): a two-triangle mesh, and a
-    one-tensor field state whose value counts this fake's calls."""
+    one-tensor field state whose value counts this fake's calls. ``warms``: each tile's last warm start."""
+
+    def __init__(self, shift: float = 0.0, error: BaseException | None = None) -> None:
+        super().__init__(shift, error)
+        self.warms: dict[tuple[int, int], tuple[bytes | None, str]] = {}
 
     def __call__(self, inputs: Any, keeper: Any) -> FusionResult:
         import torch
 
         self.warm, self.warm_kind = inputs.warm, inputs.warm_kind
+        self.warms[(inputs.tile.i, inputs.tile.j)] = (inputs.warm, inputs.warm_kind)
         poses = self._moved(inputs.tile, inputs.submaps)
         state = {"w": torch.full((1,), float(len(self.calls)))}
         return FusionResult(fake_mesh(inputs.tile), poses, {"losses": {"total": 0.1}}, inputs.config.to_dict(),

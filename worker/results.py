@@ -208,6 +208,7 @@ def commit_alignment(
     incremental: bool = False,
     drifts: dict[str, Drift] | None = None,
     kept: list[tuple[int, int]] | None = None,
+    carried: dict[tuple[int, int], str] | None = None,
 ) -> tuple[Outcome, list[str]]:
     """ONE transaction: the refined pose of every aligned submap (written once: only where none was; a
     joint re-alignment, ``claim.realign``, rewrites them) with the tiles its surface reaches there
@@ -216,8 +217,9 @@ def commit_alignment(
     its job, ``queued``, with the blob of the field trained there, if any, which replaces the tile's
     reconstruction field as its warm start), the align job ``succeeded``. A tile in ``kept`` (a re-alignment
     left its surface where its mesh has it: ``fusion.placement.settle_realignment``) goes back to ``fused``
-    instead where nothing marked it since its last fusion (``tiles.settle``). Returns the outcome and the new
-    jobs to enqueue."""
+    instead where nothing marked it since its last fusion (``tiles.settle``). A tile in ``carried`` (tile → blob:
+    its last reconstruction field carried along with its surface, ``FusionConfig.refusion_carry``) takes that
+    blob as its reconstruction field, its re-fusion's start. Returns the outcome and the new jobs to enqueue."""
     now = utcnow()
     with factory() as db:
         for submap_id, pose in sorted(poses.items()):
@@ -238,7 +240,8 @@ def commit_alignment(
                 continue
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
                             trigger=JobTrigger.auto.value, created_at=now, enqueued_at=now)
-            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j))):
+            if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j)),
+                                   recon_field_sha256=(carried or {}).get((i, j))):
                 db.rollback()
                 log.warning("job %s: lease lost before commit; alignment discarded", claim.job_id)
                 return Outcome.lost, []

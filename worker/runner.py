@@ -19,19 +19,21 @@ import time
 from functools import lru_cache
 from typing import Any
 
+import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from fusion.drift import Drift, corrected_input
 from fusion.errors import FusionError, FusionLibraryError
-from fusion.placement import motion_report, settle_realignment
+from fusion.field import moved_state, pack_state, unpack_state
+from fusion.placement import motion_report, settle_realignment, tile_carry
 from fusion.tiles import surface_tiles
 from fusion.types import FusedMesh, FusionResult, Pose
 from service.broker import enqueue
 from service.settings import Settings, get_settings
 from service.store.blobs import BlobStore, blob_store_from_url
 from service.store.db import engine_from_settings, make_sessionmaker
-from service.store.models import JobKind, TileVersion, utcnow
+from service.store.models import JobKind, Tile, TileVersion, utcnow
 from worker import metrics, results
 from worker.inputs import RegionInputs, TileInputs, load_meshes, load_submaps, plan_alignment, plan_tile
 from worker.lease import Claim, LeaseKeeper, LeaseLost, claim_job, release
@@ -122,17 +124,33 @@ def _align(
 
 
 def _settle(inputs: RegionInputs, poses: dict[str, Pose], drifts: dict[str, Drift], keys: list[tuple[int, int]],
-            tile_size: float) -> tuple[dict[str, Pose], list[tuple[int, int]], dict[tuple[int, int], float]]:
+            tile_size: float) -> tuple[dict[str, Pose], list[tuple[int, int]], dict[tuple[int, int], float],
+                                       dict[tuple[int, int], np.ndarray]]:
     """A re-alignment by registration alone (``fusion.placement.settle_realignment``): its poses (with
-    ``realign_hold``, the map held where the refined poses had it), the tiles whose surface did not move, and
-    each tile's motion."""
+    ``realign_hold``, the map held where the refined poses had it), the tiles whose surface did not move,
+    each tile's motion, and the rigid motion each other tile's field is carried by (``refusion_carry``;
+    ``fusion.placement.tile_carry``)."""
     config = inputs.config
     before = {row.id: Pose.from_json(row.pose_refined) for row, _, free in inputs.rows if free and row.pose_refined}
     shaped = {row.id: Drift.from_json(row.drift_refined) for row, _, free in inputs.rows
               if free and row.pose_refined and row.drift_refined}
-    return settle_realignment(inputs.submaps, before, poses, keys, tile_size=tile_size, band_m=config.refusion_band_m,
-                              hold=config.realign_hold, keep_m=config.realign_keep_m, drifts_before=shaped,
-                              drifts_after=drifts)
+    settled, kept, moved = settle_realignment(
+        inputs.submaps, before, poses, keys, tile_size=tile_size, band_m=config.refusion_band_m,
+        hold=config.realign_hold, keep_m=config.realign_keep_m, drifts_before=shaped, drifts_after=drifts)
+    carry = tile_carry(inputs.submaps, before, settled, [k for k in keys if k not in kept], tile_size,
+                       config.refusion_band_m, shaped, drifts) if config.refusion_carry else {}
+    return settled, kept, moved, carry
+
+
+def _carried_fields(factory: sessionmaker[Session], blobs: BlobStore,
+                    carry: dict[tuple[int, int], np.ndarray]) -> dict[tuple[int, int], str]:
+    """Each tile's last reconstruction field carried by its motion (``fusion.field.moved_state``), stored
+    as a new blob (durable before a row names it): tile → blob. Tiles without such a field are absent."""
+    with factory() as db:
+        stored = {key: tile.recon_field_sha256 for key in carry
+                  if (tile := db.get(Tile, key)) is not None and tile.recon_field_sha256}
+    return {key: blobs.put(pack_state(moved_state(unpack_state(blobs.get(sha)), carry[key])))
+            for key, sha in stored.items()}
 
 
 def _run_alignment(
@@ -143,6 +161,7 @@ def _run_alignment(
     poses: dict[str, Pose] = {}
     drifts: dict[str, Drift] = {}
     kept: list[tuple[int, int]] = []
+    carried: dict[tuple[int, int], str] = {}
     surface: dict[str, list[tuple[int, int]]] = {}
     fields: dict[tuple[int, int], str] = {}
     metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free), "realign": claim.realign}
@@ -154,8 +173,10 @@ def _run_alignment(
         poses, align_metrics, trained, drifts = _align(inputs, keeper, frozen)
         metrics.update(align_metrics)
         if claim.realign and not trained:  # by registration alone: tiles it did not move keep their mesh
-            poses, kept, moved = _settle(inputs, poses, drifts, claim.tiles, settings.tile_size)
+            poses, kept, moved, carry = _settle(inputs, poses, drifts, claim.tiles, settings.tile_size)
             metrics["tile_moved_m"] = motion_report(moved)
+            carried = _carried_fields(factory, blobs, carry)
+            metrics["carried_tiles"] = [list(key) for key in sorted(carried)]
         posed = [corrected_input(s, drifts.get(s.id)) for s in inputs.submaps if s.id in poses]
         surface = {s.id: surface_tiles(s.mesh.vertices, s.mesh.faces, poses[s.id], settings.tile_size,
                                        inputs.config.refusion_band_m) for s in posed}
@@ -164,7 +185,7 @@ def _run_alignment(
         raise LeaseLost(f"lease of job {claim.job_id} lost")
     outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics, surface,
                                              incremental=inputs.held > 0 and not claim.realign, drifts=drifts,
-                                             kept=kept)
+                                             kept=kept, carried=carried)
     for job_id in jobs:
         enqueue(job_id, settings, JobKind.reconstruct.value)
     return outcome

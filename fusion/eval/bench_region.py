@@ -36,11 +36,12 @@ from fusion.config import FusionConfig
 from fusion.drift import Drift, corrected_input
 from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
+from fusion.field import moved_state
 from fusion.offline import LoadedSubmap, fuse_tiles, reconstruct_tiles
-from fusion.placement import motion_report, settle_realignment
+from fusion.placement import motion_report, settle_realignment, tile_carry
 from fusion.regions import needs_realignment
 from fusion.tiles import surface_tiles, tile_bounds
-from fusion.types import FusedMesh, FusionResult, Pose, TileSpec
+from fusion.types import FusedMesh, FusionResult, Pose, SubmapInput, TileSpec
 
 TARGETS = {"geo_f": 0.92, "sem_f": 0.80, "pose_trans_m": 0.10, "pose_rot_deg": 0.2}
 
@@ -297,7 +298,8 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     field; every tile reconstructed from the field the alignment trained there, or where it trained none
     (``realign_iterations_fraction`` 0: registration only) only the tiles whose surface moved
     (``fusion.placement.settle_realignment``; with ``realign_hold`` the map first held where it stood)
-    reconstructed, each from its own last reconstruction (``before``), the others kept. Updates ``poses`` and ``drifts``; returns the tiles'
+    reconstructed, each from its own last reconstruction (``before``; with ``refusion_carry`` its field carried
+    by the tile's rigid motion), the others kept. Updates ``poses`` and ``drifts``; returns the tiles'
     results, the alignment's fields and the addition's figures."""
     from fusion.align import align_region
 
@@ -313,12 +315,14 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
             inputs, poses, result.poses, [k for k in keys if k in before], tile_size=ctx.tile_size,
             band_m=cfg.refusion_band_m, hold=cfg.realign_hold, keep_m=cfg.realign_keep_m,
             drifts_before=drifts, drifts_after=result.drifts)
+    again = [k for k in keys if k not in kept]
+    previous = None if result.fields else _carried(inputs, before, poses, new_poses, again, ctx.tile_size, cfg,
+                                                   drifts, result.drifts)
     poses |= new_poses
     drifts.clear()
     drifts |= result.drifts
-    again = [k for k in keys if k not in kept]
     fused = reconstruct_tiles(submaps, again, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields,
-                              previous=None if result.fields else before, drifts=drifts)
+                              previous=previous, drifts=drifts)
     fused |= {k: before[k] for k in kept}
     return fused, dict(result.fields), {
         "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused) - len(kept),
@@ -326,6 +330,23 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
         "alignment": result.metrics,
         "tile_moved_m": motion_report(motion),
     } | _recon_times({k: v for k, v in fused.items() if k not in kept})
+
+
+def _carried(submaps: list[SubmapInput], results: dict[tuple[int, int], FusionResult], before: dict[str, Pose],
+             after: dict[str, Pose], tiles: list[tuple[int, int]], tile_size: float, config: FusionConfig,
+             drifts_before: dict[str, Drift], drifts_after: dict[str, Drift]) -> dict[tuple[int, int], FusionResult]:
+    """``results`` with the field of each tile of ``tiles`` carried by the tile's rigid motion from ``before``
+    to ``after`` (``FusionConfig.refusion_carry``; ``fusion.placement.tile_carry``), the start of its re-fusion."""
+    if not config.refusion_carry:
+        return results
+    motion = tile_carry(submaps, before, after, [t for t in tiles if t in results], tile_size,
+                        config.refusion_band_m, drifts_before, drifts_after)
+    out = dict(results)
+    for key, m in motion.items():
+        state = results[key].field_state
+        if state is not None:
+            out[key] = replace(results[key], field_state=moved_state(state, m))
+    return out
 
 
 def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, config: Any = None) -> dict[str, Any]:

@@ -148,11 +148,13 @@ def release_lease(
 
 def hand_over(
     db: Session, i: int, j: int, *, owner: str, job_id: str, now: datetime, field_sha256: str | None = None,
+    recon_field_sha256: str | None = None,
 ) -> bool:
     """An alignment finished: the tile goes from ``owner``'s lease to its reconstruct job ``job_id``
     (→ ``queued``), recording the field the alignment trained there if any (then the reconstruction field
     of the tile's earlier poses no longer is the warm start; where none was trained, e.g. a re-alignment
-    by registration only, it stays the start: the poses moved by cm to dm); False if the lease is no
+    by registration only, it stays the start: the poses moved by cm to dm), or ``recon_field_sha256``: that
+    field carried along with the tile's surface (``fusion.field.moved_state``); False if the lease is no
     longer ours."""
     values: dict[str, Any] = {
         "state": TileState.queued.value, "job_id": job_id, "lease_owner": None, "lease_until": None,
@@ -160,6 +162,8 @@ def hand_over(
     }
     if field_sha256 is not None:
         values.update(align_field_sha256=field_sha256, recon_field_sha256=None)
+    elif recon_field_sha256 is not None:
+        values.update(recon_field_sha256=recon_field_sha256)
     return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 

@@ -113,3 +113,29 @@ def test_settle_realignment_holds_nothing_where_a_held_submap_pins_the_map() -> 
     poses, kept, motion = settle_realignment(subs, before, after, [(0, 0)], tile_size=64.0, band_m=2.0, hold=True,
                                              keep_m=0.05)
     assert poses == after and kept == [] and motion[(0, 0)] == pytest.approx(0.3)
+
+
+def test_tile_carry_is_each_tiles_rigid_motion_in_its_own_frame() -> None:
+    """A map moved rigidly: every tile's carry is that motion, in the tile's frame (the map frame less its
+    lower corner); a tile no surface reaches has none; a submap that moved on its own moves its tiles' carry
+    towards its own motion, in least squares over the faces."""
+    from fusion.placement import tile_carry
+
+    subs = [_submap("a", seed=1), _submap("b", seed=2), _submap("c", seed=3), _submap("new", seed=4)]
+    before = {"a": _at(10, 10), "b": _at(80, 10), "c": _at(60, 60, 30)}
+    after = {k: SHIFT.compose(v) for k, v in before.items()} | {"new": _at(20, 20)}
+    tiles = [(0, 0), (1, 0), (2, 0), (0, 1), (1, 1)]
+    carry = tile_carry(subs, before, after, tiles, tile_size=64.0, band_m=2.0)
+    assert sorted(carry) == [(0, 0), (0, 1), (1, 0), (1, 1)]  # c spans four tiles; (2, 0) is empty
+    for (i, j), m in carry.items():
+        corner = np.eye(4)
+        corner[:3, 3] = [i * 64.0, j * 64.0, 0.0]
+        assert np.allclose(m, np.linalg.inv(corner) @ SHIFT.matrix() @ corner, atol=1e-9)
+
+    bent = after | {"b": _at(80.3, 10)}  # b alone moved on, 0.3 m along x
+    alone = tile_carry(subs, before, bent, [(1, 0)], tile_size=64.0, band_m=2.0)[(1, 0)]
+    shared = tile_carry(subs, before, bent, [(0, 0)], tile_size=64.0, band_m=2.0)[(0, 0)]
+    assert np.allclose(shared, carry[(0, 0)], atol=1e-9)  # (0, 0) holds a and c only
+    b_only = tile_carry([subs[1]], before, bent, [(1, 0)], tile_size=64.0, band_m=2.0)[(1, 0)]
+    assert np.allclose(b_only[:3, 3], [0.3, 0.0, 0.0], atol=1e-9) and np.allclose(b_only[:3, :3], np.eye(3))
+    assert 0.0 < alone[0, 3] - carry[(1, 0)][0, 3] < 0.3  # c's faces there pull it back towards the shift

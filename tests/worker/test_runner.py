@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import pytest
 
 from fusion.errors import FusionError
@@ -436,14 +437,18 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
     session's moves with them), and tile (1, 0), which the new session does not reach and whose surface did
     not move, goes back to ``fused`` with its mesh (no reconstruct job, same version); tile (0, 0), with the
     new session, is reconstructed. Not held (``realign_hold`` off), every tile moved: both reconstructed.
-    A tile marked since its fusion (a pose changed elsewhere) is reconstructed though its surface stood still."""
+    A tile marked since its fusion (a pose changed elsewhere) is reconstructed though its surface stood still.
+    A tile reconstructed again starts from its last field carried along with its surface (``refusion_carry``):
+    moved 0.5 m along x where the map moved, where it was where the map was held."""
     from fusion.config import FusionConfig
+    from fusion.field import unpack_state
     from worker import inputs
 
     tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=0.0, realign_hold=hold)
     monkeypatch.setattr(inputs, "fusion_config", lambda settings: tiny)
     monkeypatch.setattr(runner, "_align", FakeAlign(shift=0.5))
-    monkeypatch.setattr(runner, "_fuse", FakeFusion())
+    fusion = FakeFusion()
+    monkeypatch.setattr(runner, "_fuse", fusion)
     with in_process(tmp_path) as env:
         ids: dict[str, str] = {}
         add, pose_x = _growing(env, ids)
@@ -460,6 +465,13 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
         assert (job.kind, job.realign, job.tiles) == ("align", True, [[0, 0], [1, 0]])
         recon = sorted((j.tile_i, j.tile_j) for j in third[1:])
         tile = env.get("/v1/tiles/1/0").json()
+        warm, kind = fusion.warms[(0, 0)]
+        assert kind == "reconstruction" and warm is not None
+        state = unpack_state(warm)
+        assert set(state) == {"w", "norm.frame"} and job.metrics["carried_tiles"] == [list(t) for t in recon]
+        # the field at x + motion is the old one at x: its frame takes a point back by the motion
+        assert state["norm.frame"][:3, 3].tolist() == pytest.approx([0.0 if hold else -0.5, 0.0, 0.0], abs=1e-5)
+        assert state["norm.frame"][:3, :3].numpy() == pytest.approx(np.eye(3), abs=1e-6)
         if hold:
             assert pose_x() == pytest.approx({"a": 10.5, "b": 12.5, "link": 50.5, "c": 80.5, "base": 14.5, "d": 16.5,
                                               "e": 18.0})
