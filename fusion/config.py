@@ -293,10 +293,15 @@ class FusionConfig:
     # 0.759 vs 0.761, geo F 0.984 vs 0.985, the re-aligning addition 78 vs 91 s
     realign_keep_m: float = 0.05
     # a re-alignment by registration alone moves each tile's surface by decimetres (mostly the map's
-    # placement: ``realign_hold``) and reshapes it by centimetres; the tile's re-fusion starts from its last
+    # placement: ``realign_hold``) and reshapes it by centimetres; on: the tile's re-fusion starts from its last
     # field carried by the tile's rigid motion (``fusion.placement.tile_carry``, ``fusion.field.moved_state``),
-    # centimetres from its surface instead of decimetres. False: from the field where it was trained
-    refusion_carry: bool = True
+    # centimetres from its surface instead of decimetres; off: from the field where it was trained. Add_sessions,
+    # the re-aligned map (geo F / sem F / single-session objects), off → on with the default 1/3 of the steps:
+    # exact 0 0.978 / 0.813 / 3.0 % → 0.982 / 0.820 / 3.0 %, exact 1 0.983 / 0.773 / 11.7 % → 0.984 / 0.758 / 4.2 %,
+    # camera 0 0.781 / 0.362 / 0.9 % → 0.779 / 0.351 / 3.9 %: within run-to-run spread, so off by default. It pays
+    # with fewer steps (exact 0, an eighth for the tiles no new session reaches: off 0.789 / 16 %, on 0.819 / 6.8 %,
+    # 59 s against 66 s at 1/3), which the service cannot yet choose per tile. docs/METHOD_LOG.md, thirty-third session
+    refusion_carry: bool = False
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). 0 (default since
     # the twenty-fifth session): the new submaps placed by the registrations alone (the held submaps fixed), no
     # frozen field tracked; a tile new to the map then starts cold. add_sessions, fourth session added, 240 -> 0

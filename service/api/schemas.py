@@ -239,7 +239,8 @@ class JobPublic(BaseModel):
         "incrementally, against a map they could not move. A tile the new sessions do not reach and whose "
         "surface moved less than `realign_keep_m` (0.05 m) goes back to `fused` with its mesh "
         "(`metrics.kept_tiles`; `metrics.tile_moved_m` per tile, null where a new submap is); every other tile "
-        "is reconstructed, starting from its last field carried by the tile's rigid motion (`metrics.carried_tiles`). "
+        "is reconstructed (with `refusion_carry`, off by default, starting from its last field carried by the "
+        "tile's rigid motion: `metrics.carried_tiles`). "
         "With `realign_hold` (off by default) the whole map is first held where it stood")
     state: JobStateName
     trigger: Literal["auto", "operator"]

@@ -438,13 +438,13 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
     not move, goes back to ``fused`` with its mesh (no reconstruct job, same version); tile (0, 0), with the
     new session, is reconstructed. Not held (``realign_hold`` off), every tile moved: both reconstructed.
     A tile marked since its fusion (a pose changed elsewhere) is reconstructed though its surface stood still.
-    A tile reconstructed again starts from its last field carried along with its surface (``refusion_carry``):
+    With ``refusion_carry`` a tile reconstructed again starts from its last field carried along with its surface:
     moved 0.5 m along x where the map moved, where it was where the map was held."""
     from fusion.config import FusionConfig
     from fusion.field import unpack_state
     from worker import inputs
 
-    tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=0.0, realign_hold=hold)
+    tiny = FusionConfig.preset("tiny").with_(realign_iterations_fraction=0.0, realign_hold=hold, refusion_carry=True)
     monkeypatch.setattr(inputs, "fusion_config", lambda settings: tiny)
     monkeypatch.setattr(runner, "_align", FakeAlign(shift=0.5))
     fusion = FakeFusion()

@@ -201,3 +201,28 @@ def test_add_sessions_adds_the_last_two_one_after_the_other(tmp_path) -> None:  
     assert row["geo_f"] > 0.2 and row["poses"] == len(ctx.submaps)
     with pytest.raises(ValueError, match="needs 4 sessions"):
         bench_region._add_session(ctx, [(0, 0), (1, 0)], count=3)
+
+
+def test_a_realignment_carries_each_refused_tiles_field_only_when_asked() -> None:
+    """``_carried``: with ``refusion_carry`` the field of each tile to re-fuse moves with the tile's surface (its
+    frame takes a point back by the motion, in the tile's frame); a tile not re-fused, or without a field, and
+    every tile with the switch off, keep their last result as it was."""
+    import torch
+
+    from tests.fusion.test_placement import SHIFT, _at, _submap
+
+    subs = [_submap("a", seed=1), _submap("b", seed=2)]
+    before = {"a": _at(10, 10), "b": _at(80, 10)}
+    after = {k: SHIFT.compose(v) for k, v in before.items()}
+    results = {key: FusionResult(FusedMesh.empty(), {}, {}, {}, {}, field_state={"w": torch.ones(1)})
+               for key in [(0, 0), (1, 0)]}
+    on = FusionConfig.preset("tiny").with_(refusion_carry=True)
+    out = bench_region._carried(subs, results, before, after, [(1, 0)], 64.0, on, {}, {})
+    assert out[(0, 0)] is results[(0, 0)]  # not re-fused
+    corner = np.eye(4)
+    corner[0, 3] = 64.0
+    want = np.linalg.inv(np.linalg.inv(corner) @ SHIFT.matrix() @ corner)
+    assert np.allclose(out[(1, 0)].field_state["norm.frame"].double().numpy(), want, atol=1e-5)
+    assert torch.equal(out[(1, 0)].field_state["w"], torch.ones(1))
+    off = bench_region._carried(subs, results, before, after, [(1, 0)], 64.0, on.with_(refusion_carry=False), {}, {})
+    assert off == results
