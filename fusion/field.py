@@ -34,6 +34,14 @@ class TileNormalizer(nn.Module):
         self.register_buffer("lo", lo.float().clone())  # (3,)
         self.register_buffer("extent", (hi - lo).float().clone())  # (3,)
         self.register_buffer("frame", torch.eye(4))
+        self.moved = False  # ``frame`` is not the identity (kept in step by every state load): a fresh or
+        # uncarried field skips the transform on its hot path
+        self.register_load_state_dict_post_hook(TileNormalizer._frame_loaded)
+
+    @staticmethod
+    def _frame_loaded(module: nn.Module, incompatible: object) -> None:
+        assert isinstance(module, TileNormalizer)
+        module.moved = not torch.equal(module.frame, torch.eye(4, dtype=module.frame.dtype, device=module.frame.device))
 
     @property
     def aspect(self) -> tuple[float, float, float]:
@@ -46,8 +54,10 @@ class TileNormalizer(nn.Module):
 
     def forward(self, x_map: Tensor) -> Tensor:
         """``(n, 3)`` map-frame metres → ``(n, 3)`` normalised."""
-        f = self.frame
-        return (x_map @ f[:3, :3].T + f[:3, 3] - self.lo) / self.extent
+        if self.moved:
+            f = self.frame
+            x_map = x_map @ f[:3, :3].T + f[:3, 3]
+        return (x_map - self.lo) / self.extent
 
 
 class PositionalEncoding(nn.Module):
