@@ -295,13 +295,20 @@ class FusionConfig:
     # a re-alignment by registration alone moves each tile's surface by decimetres (mostly the map's
     # placement: ``realign_hold``) and reshapes it by centimetres; on: the tile's re-fusion starts from its last
     # field carried by the tile's rigid motion (``fusion.placement.tile_carry``, ``fusion.field.moved_state``),
-    # centimetres from its surface instead of decimetres; off: from the field where it was trained. Add_sessions,
-    # the re-aligned map (geo F / sem F / single-session objects), off → on with the default 1/3 of the steps:
-    # exact 0 0.978 / 0.813 / 3.0 % → 0.982 / 0.820 / 3.0 %, exact 1 0.983 / 0.773 / 11.7 % → 0.984 / 0.758 / 4.2 %,
-    # camera 0 0.781 / 0.362 / 0.9 % → 0.779 / 0.351 / 3.9 %: within run-to-run spread, so off by default. It pays
-    # with fewer steps (exact 0, an eighth for the tiles no new session reaches: off 0.789 / 16 %, on 0.819 / 6.8 %,
-    # 59 s against 66 s at 1/3), which the service cannot yet choose per tile. docs/METHOD_LOG.md, thirty-third session
-    refusion_carry: bool = False
+    # centimetres from its surface instead of decimetres; off: from the field where it was trained. Alone (the
+    # default 1/3 of the steps) within run-to-run spread (add_sessions, the re-aligned map, geo F / sem F /
+    # single-session objects, off → on: exact 0 0.978 / 0.813 / 3.0 % → 0.982 / 0.820 / 3.0 %, exact 1 0.983 / 0.773
+    # / 11.7 % → 0.984 / 0.758 / 4.2 %, camera 0 0.781 / 0.362 / 0.9 % → 0.779 / 0.351 / 3.9 %); what it buys is the
+    # fewer steps below: uncarried, an eighth of the steps lost exact 0 0.024 sem F and let 16 % of the
+    # single-session objects back, carried 0.819 / 6.8 %. docs/METHOD_LOG.md, thirty-third and thirty-fourth sessions
+    refusion_carry: bool = True
+    # a re-fusion from a carried field (``refusion_carry``) of a tile no new submap reaches (its surface only
+    # moved, by centimetres after the carry): this fraction of a cold start's steps instead of
+    # ``refusion_warm_fraction`` (``WarmKind`` "carried"; in the service ``Tile.recon_field_carried``); a tile a
+    # new submap reaches keeps that, the new surface has to be built. The re-aligning addition, 1/3 → 1/6 on 3-4
+    # of 8 tiles: exact 0 66-69 → 62 s (32 % of the same run's full fusion), exact 1 72-76 → 66 s (40 %), camera 0
+    # 54-55 → 40 s (33 %), camera 1 46 s (32 %); the re-aligned map's figures within run-to-run spread
+    refusion_carried_fraction: float = 1 / 6
     # the same × the new submaps' content, fields frozen (steps are cheap: no field gradients). 0 (default since
     # the twenty-fifth session): the new submaps placed by the registrations alone (the held submaps fixed), no
     # frozen field tracked; a tile new to the map then starts cold. add_sessions, fourth session added, 240 -> 0
@@ -442,8 +449,10 @@ class FusionConfig:
             raise ValueError(f"detail_m must be >= 0 (0: off), got {self.detail_m}")
         if not 0 <= self.realign_keep_m < math.inf:
             raise ValueError(f"realign_keep_m must be a finite number of metres >= 0, got {self.realign_keep_m}")
-        if not 0 <= self.realign_iterations_fraction <= 1:
-            raise ValueError(f"realign_iterations_fraction must be in [0, 1], got {self.realign_iterations_fraction}")
+        for fraction in ("realign_iterations_fraction", "recon_warm_fraction", "refusion_warm_fraction",
+                         "refusion_carried_fraction"):
+            if not 0 <= getattr(self, fraction) <= 1:
+                raise ValueError(f"{fraction} must be in [0, 1], got {getattr(self, fraction)}")
         if self.fine_polish_gain_max < 1:
             raise ValueError(f"fine_polish_gain_max must be >= 1 (1: the registration's weight), got "
                              f"{self.fine_polish_gain_max}")

@@ -11,7 +11,7 @@ Output: ``OUT/tiles/{i}_{j}.ply`` (fused PLY, map frame), ``OUT/poses.json``
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -215,6 +215,7 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
                        previous: dict[tuple[int, int], FusionResult] | None = None,
                        warm: dict[tuple[int, int], dict[str, Any]] | None = None,
                        drifts: dict[str, Drift] | None = None,
+                       carried: Collection[tuple[int, int]] = (),
                        ) -> dict[tuple[int, int], FusionResult]:
     """Each tile in order with every submap of it (:func:`members`) held at ``poses`` (else its GPS pose); neighbours
     reconstructed earlier (here, else in ``previous``: the tiles a re-fusion leaves as they are) pin the
@@ -222,7 +223,9 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
 
     ``previous``: the map before a session was added (its submaps held where they were, the new ones
     aligned against it): a tile of it re-fused here starts from its own field instead, with
-    ``refusion_warm_fraction`` of the steps. ``drifts``: each submap's drift correction (``fusion.drift``), if any."""
+    ``refusion_warm_fraction`` of the steps; a tile of ``carried`` (its field in ``previous`` carried along with
+    its surface by a re-alignment that brought it no new submap) with ``refusion_carried_fraction``.
+    ``drifts``: each submap's drift correction (``fusion.drift``), if any."""
     from fusion.reconstruct import reconstruct_tile
 
     drifts = drifts or {}
@@ -243,7 +246,7 @@ def reconstruct_tiles(submaps: list[LoadedSubmap], keys: list[tuple[int, int]], 
         start: dict[str, Any] | None = (warm or {}).get(key)
         kind: WarmKind = "alignment"
         if last is not None and last.field_state is not None and config.refusion_warm_fraction > 0:
-            start, kind = last.field_state, "reconstruction"
+            start, kind = last.field_state, "carried" if key in carried else "reconstruction"
         try:
             result = reconstruct_tile(inputs, TileSpec(key[0], key[1], tile_size), config,
                                       progress=_staged(progress, label), border_pins=pins or None,

@@ -202,7 +202,9 @@ def reconstruct_tile(
     these poses) to start from: ``recon_warm_fraction`` of the steps at every level instead of a cold
     start's full progressive schedule (0: always cold). ``warm_kind`` "reconstruction": the state is the
     tile's previous reconstruction (its held submaps at the poses it was trained at, new submaps added):
-    ``refusion_warm_fraction`` of the steps. The result carries the trained field's state
+    ``refusion_warm_fraction`` of the steps; "carried": that reconstruction carried along with the tile's
+    surface (``fusion.field.moved_state``) by a re-alignment that brought the tile no new submap:
+    ``refusion_carried_fraction``. The result carries the trained field's state
     (``FusionResult.field_state``).
 
     Raises ``FusionError`` when no submap overlaps the tile (+ margin).
@@ -214,7 +216,7 @@ def reconstruct_tile(
     problem = build_problem(submaps, tile, config, dev, inflate_thin=True)
     content = tile_content(_posed_pool(problem), problem.lo, problem.hi, config)  # steps ∝ content (recorded)
     steps = content_iterations(config.iterations, [content], config)
-    fraction = config.refusion_warm_fraction if warm_kind == "reconstruction" else config.recon_warm_fraction
+    fraction = warm_fraction(config, warm_kind)
     field = _warm_field(warm, fraction, config, dev)
     if field is not None:
         steps = max(1, round(steps * fraction))
@@ -253,6 +255,12 @@ def reconstruct_tile(
     }
     poses = map_poses(problem.poses, problem.origin, problem.submaps)
     return FusionResult(mesh, poses, metrics, config.to_dict(), border, field_state(field))
+
+
+def warm_fraction(config: FusionConfig, kind: WarmKind) -> float:
+    """The share of a cold start's steps a reconstruction warm-started from a field of ``kind`` trains."""
+    return {"alignment": config.recon_warm_fraction, "reconstruction": config.refusion_warm_fraction,
+            "carried": config.refusion_carried_fraction}[kind]
 
 
 def _warm_field(warm: dict[str, torch.Tensor] | None, fraction: float, config: FusionConfig,

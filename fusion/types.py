@@ -212,9 +212,10 @@ class ProgressEvent:
 
 ProgressCallback = Callable[[ProgressEvent], None]
 
-# what a reconstruction's warm start was trained as: the region alignment's field of the tile, or the tile's
-# previous reconstruction (a re-fusion after a session was added; fusion.reconstruct.reconstruct_tile)
-WarmKind = Literal["alignment", "reconstruction"]
+# what a reconstruction's warm start was trained as: the region alignment's field of the tile, the tile's
+# previous reconstruction (a re-fusion after a session was added), or that reconstruction carried along with
+# the tile's surface by a re-alignment that brought the tile no new submap (fusion.reconstruct.reconstruct_tile)
+WarmKind = Literal["alignment", "reconstruction", "carried"]
 
 
 @dataclass

@@ -46,7 +46,7 @@ class TileInputs:
     # the field blob the reconstruction starts from: the tile's last reconstruction's (a re-fusion after an
     # incremental alignment: ``refusion_warm_fraction`` of the steps), else its last alignment's
     warm_sha256: str | None = None
-    warm_kind: WarmKind = "alignment"  # or "reconstruction" (``reconstruct_tile``)
+    warm_kind: WarmKind = "alignment"  # or "reconstruction", "carried" (``reconstruct_tile``)
     warm: bytes | None = None  # its bytes (a serialised state dict), read by load_meshes
 
 
@@ -155,8 +155,10 @@ def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
     """The aligned submaps of tile (i, j), every one held at its refined pose (the alignment owns the
     poses); those still waiting for an alignment are counted in ``pending`` and left out. The warm start:
     the tile's last reconstruction field (its held submaps have not moved since, or moved by cm to dm: an
-    incremental alignment only adds submaps, a re-alignment by registration only trains no field) with ``refusion_warm_fraction`` of the steps, else its last alignment field (none when
-    the fraction is 0). The fingerprint names the alignment field (where warm starts are on), never the
+    incremental alignment only adds submaps, a re-alignment by registration only trains no field) with
+    ``refusion_warm_fraction`` of the steps (``refusion_carried_fraction`` where a re-alignment carried it
+    and brought the tile no new submap: ``Tile.recon_field_carried``), else its last alignment field (none
+    when the fraction is 0). The fingerprint names the alignment field (where warm starts are on), never the
     reconstruction's (every version changes it), and only the submaps whose surface reaches the tile
     (:func:`shapes_tile`): a tile whose submaps and poses are unchanged, or that a new submap only grazes,
     is not fused again (the grazing submap is in the tile's next fusion, whatever brings it)."""
@@ -169,7 +171,7 @@ def plan_tile(db: Session, settings: Settings, i: int, j: int) -> TileInputs:
     warm: str | None = None
     kind: WarmKind = "alignment"
     if row is not None and row.recon_field_sha256 and config.refusion_warm_fraction > 0:
-        warm, kind = row.recon_field_sha256, "reconstruction"
+        warm, kind = row.recon_field_sha256, "carried" if row.recon_field_carried else "reconstruction"
     elif aligned and config.recon_warm_fraction > 0:
         warm = aligned
     shaping = [r for r in rows if shapes_tile(r[0], i, j)]

@@ -8,6 +8,7 @@ away writes nothing. The tile becomes ``fused`` only if no upload arrived since 
 from __future__ import annotations
 
 import logging
+from collections.abc import Collection
 from dataclasses import dataclass
 from datetime import datetime
 from enum import StrEnum
@@ -209,6 +210,7 @@ def commit_alignment(
     drifts: dict[str, Drift] | None = None,
     kept: list[tuple[int, int]] | None = None,
     carried: dict[tuple[int, int], str] | None = None,
+    quiet: Collection[tuple[int, int]] = (),
 ) -> tuple[Outcome, list[str]]:
     """ONE transaction: the refined pose of every aligned submap (written once: only where none was; a
     joint re-alignment, ``claim.realign``, rewrites them) with the tiles its surface reaches there
@@ -219,7 +221,8 @@ def commit_alignment(
     left its surface where its mesh has it: ``fusion.placement.settle_realignment``) goes back to ``fused``
     instead where nothing marked it since its last fusion (``tiles.settle``). A tile in ``carried`` (tile → blob:
     its last reconstruction field carried along with its surface, ``FusionConfig.refusion_carry``) takes that
-    blob as its reconstruction field, its re-fusion's start. Returns the outcome and the new jobs to enqueue."""
+    blob as its reconstruction field, its re-fusion's start (with fewer steps where the tile is in ``quiet``: no
+    new submap reaches it, ``Tile.recon_field_carried``). Returns the outcome and the new jobs to enqueue."""
     now = utcnow()
     with factory() as db:
         for submap_id, pose in sorted(poses.items()):
@@ -241,7 +244,7 @@ def commit_alignment(
             job = FusionJob(id=new_id(), tile_i=i, tile_j=j, kind=JobKind.reconstruct.value, state=JobState.queued.value,
                             trigger=JobTrigger.auto.value, created_at=now, enqueued_at=now)
             if not tiles.hand_over(db, i, j, owner=claim.owner, job_id=job.id, now=now, field_sha256=fields.get((i, j)),
-                                   recon_field_sha256=(carried or {}).get((i, j))):
+                                   recon_field_sha256=(carried or {}).get((i, j)), quiet=(i, j) in quiet):
                 db.rollback()
                 log.warning("job %s: lease lost before commit; alignment discarded", claim.job_id)
                 return Outcome.lost, []

@@ -13,6 +13,7 @@ the tile state (``fused``, or ``dirty`` when uploads arrived during the fusion) 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import socket
 import time
@@ -162,6 +163,7 @@ def _run_alignment(
     drifts: dict[str, Drift] = {}
     kept: list[tuple[int, int]] = []
     carried: dict[tuple[int, int], str] = {}
+    quiet: list[tuple[int, int]] = []
     surface: dict[str, list[tuple[int, int]]] = {}
     fields: dict[tuple[int, int], str] = {}
     metrics: dict[str, Any] = {"submaps": len(inputs.rows), "free_submaps": len(inputs.free), "realign": claim.realign}
@@ -176,7 +178,9 @@ def _run_alignment(
             poses, kept, moved, carry = _settle(inputs, poses, drifts, claim.tiles, settings.tile_size)
             metrics["tile_moved_m"] = motion_report(moved)
             carried = _carried_fields(factory, blobs, carry)
+            quiet = [key for key in sorted(carried) if math.isfinite(moved.get(key, math.inf))]  # no new submap
             metrics["carried_tiles"] = [list(key) for key in sorted(carried)]
+            metrics["quiet_tiles"] = [list(key) for key in quiet]
         posed = [corrected_input(s, drifts.get(s.id)) for s in inputs.submaps if s.id in poses]
         surface = {s.id: surface_tiles(s.mesh.vertices, s.mesh.faces, poses[s.id], settings.tile_size,
                                        inputs.config.refusion_band_m) for s in posed}
@@ -185,7 +189,7 @@ def _run_alignment(
         raise LeaseLost(f"lease of job {claim.job_id} lost")
     outcome, jobs = results.commit_alignment(factory, claim, poses, fields, metrics, surface,
                                              incremental=inputs.held > 0 and not claim.realign, drifts=drifts,
-                                             kept=kept, carried=carried)
+                                             kept=kept, carried=carried, quiet=quiet)
     for job_id in jobs:
         enqueue(job_id, settings, JobKind.reconstruct.value)
     return outcome

@@ -20,6 +20,7 @@ would more than double the CPU time and are not evaluated).
 from __future__ import annotations
 
 import json
+import math
 import tempfile
 import time
 from collections.abc import Callable
@@ -316,29 +317,33 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
             band_m=cfg.refusion_band_m, hold=cfg.realign_hold, keep_m=cfg.realign_keep_m,
             drifts_before=drifts, drifts_after=result.drifts)
     again = [k for k in keys if k not in kept]
-    previous = None if result.fields else _carried(inputs, before, poses, new_poses, again, ctx.tile_size, cfg,
-                                                   drifts, result.drifts)
+    previous, carried = (None, set()) if result.fields else _carried(
+        inputs, before, poses, new_poses, again, ctx.tile_size, cfg, drifts, result.drifts)
+    quiet = {k for k in carried if math.isfinite(motion.get(k, math.inf))}  # no new submap reaches these
     poses |= new_poses
     drifts.clear()
     drifts |= result.drifts
     fused = reconstruct_tiles(submaps, again, cfg, ctx.tile_size, None, poses, None, skipped, warm=result.fields,
-                              previous=previous, drifts=drifts)
+                              previous=previous, drifts=drifts, carried=quiet)
     fused |= {k: before[k] for k in kept}
     return fused, dict(result.fields), {
         "realigned": True, "align_s": result.metrics["duration_s"], "tiles_refused": len(fused) - len(kept),
         "refused": [list(k) for k in sorted(set(fused) - set(kept))], "kept": [list(k) for k in kept],
         "alignment": result.metrics,
-        "tile_moved_m": motion_report(motion),
+        "tile_moved_m": motion_report(motion), "carried": [list(k) for k in sorted(carried)],
+        "carried_quiet": [list(k) for k in sorted(quiet)],
     } | _recon_times({k: v for k, v in fused.items() if k not in kept})
 
 
 def _carried(submaps: list[SubmapInput], results: dict[tuple[int, int], FusionResult], before: dict[str, Pose],
              after: dict[str, Pose], tiles: list[tuple[int, int]], tile_size: float, config: FusionConfig,
-             drifts_before: dict[str, Drift], drifts_after: dict[str, Drift]) -> dict[tuple[int, int], FusionResult]:
+             drifts_before: dict[str, Drift], drifts_after: dict[str, Drift]
+             ) -> tuple[dict[tuple[int, int], FusionResult], set[tuple[int, int]]]:
     """``results`` with the field of each tile of ``tiles`` carried by the tile's rigid motion from ``before``
-    to ``after`` (``FusionConfig.refusion_carry``; ``fusion.placement.tile_carry``), the start of its re-fusion."""
+    to ``after`` (``FusionConfig.refusion_carry``; ``fusion.placement.tile_carry``), the start of its re-fusion,
+    and the tiles whose field was carried."""
     if not config.refusion_carry:
-        return results
+        return results, set()
     motion = tile_carry(submaps, before, after, [t for t in tiles if t in results], tile_size,
                         config.refusion_band_m, drifts_before, drifts_after)
     out = dict(results)
@@ -346,7 +351,7 @@ def _carried(submaps: list[SubmapInput], results: dict[tuple[int, int], FusionRe
         state = results[key].field_state
         if state is not None:
             out[key] = replace(results[key], field_state=moved_state(state, m))
-    return out
+    return out, {k for k in motion if results[k].field_state is not None}
 
 
 def _baseline(ctx: BenchContext, keys: list[tuple[int, int]], method: str, config: Any = None) -> dict[str, Any]:

@@ -239,8 +239,9 @@ class JobPublic(BaseModel):
         "incrementally, against a map they could not move. A tile the new sessions do not reach and whose "
         "surface moved less than `realign_keep_m` (0.05 m) goes back to `fused` with its mesh "
         "(`metrics.kept_tiles`; `metrics.tile_moved_m` per tile, null where a new submap is); every other tile "
-        "is reconstructed (with `refusion_carry`, off by default, starting from its last field carried by the "
-        "tile's rigid motion: `metrics.carried_tiles`). "
+        "is reconstructed, starting from its last field carried by the tile's rigid motion (`refusion_carry`: "
+        "`metrics.carried_tiles`), with fewer steps where no new submap reaches the tile "
+        "(`refusion_carried_fraction`: `metrics.quiet_tiles`). "
         "With `realign_hold` (off by default) the whole map is first held where it stood")
     state: JobStateName
     trigger: Literal["auto", "operator"]
@@ -250,7 +251,7 @@ class JobPublic(BaseModel):
     finished_at: datetime | None
     error: str | None
     metrics: dict[str, Any] | None = Field(
-        description="What the job measured: align jobs list `reconstruct_jobs`, `kept_tiles`, `carried_tiles`, `joined_tiles`, "
+        description="What the job measured: align jobs list `reconstruct_jobs`, `kept_tiles`, `carried_tiles`, `quiet_tiles`, `joined_tiles`, "
         "`aligned_submaps`, losses and timing; reconstruct jobs the mesh's size, timing and `version`")
 
 

@@ -212,6 +212,9 @@ class Tile(Base):
     # the field the tile's last reconstruction trained, at the held poses of its submaps: the warm start of
     # its re-fusion after an incremental alignment added submaps (cleared when an alignment trains the tile)
     recon_field_sha256: Mapped[str | None] = mapped_column(String(64), default=None)
+    # that field is the last one carried along with the tile's surface by a re-alignment that brought the tile
+    # no new submap (``fusion.field.moved_state``): its re-fusion needs fewer steps (WarmKind "carried")
+    recon_field_carried: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
 

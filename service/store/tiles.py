@@ -148,22 +148,23 @@ def release_lease(
 
 def hand_over(
     db: Session, i: int, j: int, *, owner: str, job_id: str, now: datetime, field_sha256: str | None = None,
-    recon_field_sha256: str | None = None,
+    recon_field_sha256: str | None = None, quiet: bool = False,
 ) -> bool:
     """An alignment finished: the tile goes from ``owner``'s lease to its reconstruct job ``job_id``
     (→ ``queued``), recording the field the alignment trained there if any (then the reconstruction field
     of the tile's earlier poses no longer is the warm start; where none was trained, e.g. a re-alignment
     by registration only, it stays the start: the poses moved by cm to dm), or ``recon_field_sha256``: that
-    field carried along with the tile's surface (``fusion.field.moved_state``); False if the lease is no
-    longer ours."""
+    field carried along with the tile's surface (``fusion.field.moved_state``), ``quiet`` where the
+    re-alignment brought the tile no new submap (``Tile.recon_field_carried``: its re-fusion needs fewer
+    steps); False if the lease is no longer ours."""
     values: dict[str, Any] = {
         "state": TileState.queued.value, "job_id": job_id, "lease_owner": None, "lease_until": None,
-        "progress": 0.0, "updated_at": now,
+        "progress": 0.0, "updated_at": now, "recon_field_carried": False,
     }
     if field_sha256 is not None:
         values.update(align_field_sha256=field_sha256, recon_field_sha256=None)
     elif recon_field_sha256 is not None:
-        values.update(recon_field_sha256=recon_field_sha256)
+        values.update(recon_field_sha256=recon_field_sha256, recon_field_carried=quiet)
     return _changed(db.execute(_update(i, j, Tile.lease_owner == owner).values(**values)))
 
 
@@ -197,6 +198,7 @@ def finish(
         "progress": 1.0,
         "last_error": None,
         "updated_at": now,
+        "recon_field_carried": False,  # the carried field's re-fusion is done
     }
     if new_version:
         values.update(version=Tile.version + 1, fused_at=now)

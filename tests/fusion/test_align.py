@@ -158,7 +158,8 @@ def test_reconstruction_starts_from_the_alignment_field() -> None:
 def test_a_refusion_starts_from_the_tiles_previous_reconstruction() -> None:
     """A reconstruction returns its trained field. Session b added, the tile's re-fusion starts from the
     field of the map before (session a), with ``refusion_warm_fraction`` of the steps: one step from it
-    holds the street (a cold step does not). ``reconstruct_tiles`` re-fuses a tile of ``previous`` that way."""
+    holds the street (a cold step does not). ``reconstruct_tiles`` re-fuses a tile of ``previous`` that way, a
+    tile of ``carried`` with ``refusion_carried_fraction`` of the steps."""
     from fusion.offline import LoadedSubmap, reconstruct_tiles
     from fusion.reconstruct import reconstruct_tile
 
@@ -179,6 +180,11 @@ def test_a_refusion_starts_from_the_tiles_previous_reconstruction() -> None:
     poses = {s.id: s.pose_init for s in held}
     refused = reconstruct_tiles(loaded, [(0, 0)], once, SIZE, None, poses, None, None, previous={(0, 0): first})
     assert refused[(0, 0)].metrics["warm_kind"] == "reconstruction" and refused[(0, 0)].metrics["iterations"] == 1
+    # a field a re-alignment carried to a tile no new submap reaches: its own share of the steps
+    fewer = once.with_(refusion_carried_fraction=1 / 30)
+    carried = reconstruct_tiles(loaded, [(0, 0)], fewer, SIZE, None, poses, None, None, previous={(0, 0): first},
+                                carried={(0, 0)})
+    assert carried[(0, 0)].metrics["warm_kind"] == "carried" and carried[(0, 0)].metrics["iterations"] == 2
 
 
 def test_incremental_tracking_uses_only_samples_near_the_held_map() -> None:

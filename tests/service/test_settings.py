@@ -20,7 +20,9 @@ def test_fusion_overrides_from_the_environment_apply_to_the_preset(monkeypatch: 
 
 @pytest.mark.parametrize("value, says", [("nokey=1", "'nokey=1': expected KEY=VALUE"),
                                          ("realign_share=x", "'x' is not a valid float"),
-                                         ("realign_share=0", "realign_share must be > 0")])
+                                         ("realign_share=0", "realign_share must be > 0"),
+                                         ("refusion_carried_fraction=1.5",
+                                          "refusion_carried_fraction must be in [0, 1], got 1.5")])
 def test_a_bad_fusion_override_stops_the_process_at_start_up_with_one_line(
         monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], value: str, says: str) -> None:
     from service.cli import main

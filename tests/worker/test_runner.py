@@ -342,8 +342,11 @@ def test_a_region_grown_incrementally_is_realigned_jointly(tmp_path: Any, monkey
             assert db.get(Tile, (0, 0)).align_field_sha256 is not None
         recon = {(j.tile_i, j.tile_j): j for j in third[1:]}
         assert set(recon) == {(0, 0), (1, 0)} and all(j.kind == "reconstruct" for j in recon.values())
-        # the last one started from the new alignment's field, or without one from its own last reconstruction
-        assert fusion.warm_kind == ("alignment" if fraction else "reconstruction")
+        # each started from the new alignment's field, or without one from its own last reconstruction (carried
+        # along with its surface: with fewer steps where the new session is not)
+        kinds = {key: fusion.warms[key][1] for key in recon}
+        assert kinds == ({(0, 0): "alignment", (1, 0): "alignment"} if fraction else
+                         {(0, 0): "reconstruction", (1, 0): "carried"})
 
         fourth = add("g", 20.0)  # the re-aligned map is joint again: the next session is tracked against it
         assert fourth[0].realign is False and set(align.frozen) == {(0, 0)}
@@ -439,7 +442,8 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
     new session, is reconstructed. Not held (``realign_hold`` off), every tile moved: both reconstructed.
     A tile marked since its fusion (a pose changed elsewhere) is reconstructed though its surface stood still.
     With ``refusion_carry`` a tile reconstructed again starts from its last field carried along with its surface:
-    moved 0.5 m along x where the map moved, where it was where the map was held."""
+    moved 0.5 m along x where the map moved, where it was where the map was held; as a "carried" warm start
+    (``refusion_carried_fraction`` of the steps) where no new submap reaches the tile, once."""
     from fusion.config import FusionConfig
     from fusion.field import unpack_state
     from worker import inputs
@@ -477,12 +481,15 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
                                               "e": 18.0})
             assert job.metrics["tile_moved_m"]["0_0"] is None  # the new session is there
             assert job.metrics["tile_moved_m"]["1_0"] == pytest.approx(0.0, abs=1e-6)
-            assert job.metrics["kept_tiles"] == [[1, 0]] and recon == [(0, 0)]
+            assert job.metrics["kept_tiles"] == [[1, 0]] and recon == [(0, 0)] and job.metrics["quiet_tiles"] == []
             assert (tile["state"], tile["version"]) == ("fused", version)
         else:
             assert pose_x()["a"] == 11.0 and job.metrics["tile_moved_m"]["1_0"] == pytest.approx(0.5)
             assert job.metrics["kept_tiles"] == [] and recon == [(0, 0), (1, 0)]
             assert (tile["state"], tile["version"]) == ("fused", version + 1)
+            assert job.metrics["quiet_tiles"] == [[1, 0]] and fusion.warms[(1, 0)][1] == "carried"
+        with env.db() as db:  # the carried field's re-fusion done: the tile's next one is a plain re-fusion
+            assert not any(t.recon_field_carried for t in db.query(Tile))
 
         with env.db() as db:  # poses changed elsewhere: tile (1, 0) is owed a fusion, it cannot be settled
             tiles.mark_dirty(db, [(1, 0)], utcnow(), upload=False)
@@ -493,4 +500,8 @@ def test_a_realignment_holds_the_map_where_it_stood_and_keeps_the_tiles_it_did_n
                 break
         assert later[0].realign and later[0].metrics["kept_tiles"] == []
         assert sorted((j.tile_i, j.tile_j) for j in later[1:]) == [(0, 0), (1, 0)]
+        # held, tile (1, 0)'s surface stood still (its field needs no carry) but something marked it: how far that
+        # moved its surface this alignment does not know, so its re-fusion is a plain one
+        assert later[0].metrics["quiet_tiles"] == ([] if hold else [[1, 0]])
+        assert fusion.warms[(1, 0)][1] == ("reconstruction" if hold else "carried")
         assert env.get("/v1/tiles/1/0").json()["state"] == "fused"

@@ -217,12 +217,14 @@ def test_a_realignment_carries_each_refused_tiles_field_only_when_asked() -> Non
     results = {key: FusionResult(FusedMesh.empty(), {}, {}, {}, {}, field_state={"w": torch.ones(1)})
                for key in [(0, 0), (1, 0)]}
     on = FusionConfig.preset("tiny").with_(refusion_carry=True)
-    out = bench_region._carried(subs, results, before, after, [(1, 0)], 64.0, on, {}, {})
-    assert out[(0, 0)] is results[(0, 0)]  # not re-fused
+    out, carried = bench_region._carried(subs, results, before, after, [(1, 0)], 64.0, on, {}, {})
+    assert carried == {(1, 0)} and out[(0, 0)] is results[(0, 0)]  # not re-fused
     corner = np.eye(4)
     corner[0, 3] = 64.0
     want = np.linalg.inv(np.linalg.inv(corner) @ SHIFT.matrix() @ corner)
     assert np.allclose(out[(1, 0)].field_state["norm.frame"].double().numpy(), want, atol=1e-5)
     assert torch.equal(out[(1, 0)].field_state["w"], torch.ones(1))
     off = bench_region._carried(subs, results, before, after, [(1, 0)], 64.0, on.with_(refusion_carry=False), {}, {})
-    assert off == results
+    assert off == (results, set())
+    bare = {**results, (1, 0): FusionResult(FusedMesh.empty(), {}, {}, {}, {})}
+    assert bench_region._carried(subs, bare, before, after, [(1, 0)], 64.0, on, {}, {})[1] == set()
