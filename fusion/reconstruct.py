@@ -228,7 +228,8 @@ def reconstruct_tile(
         if callable(allocate):
             allocate(field.norm(_posed_pool(problem)))
     t_train = time.perf_counter()
-    losses, evaluated = _train(problem, field, config, gen, progress, all_levels=warm_start)
+    losses, evaluated = _train(problem, field, config, gen, progress, all_levels=warm_start,
+                               settled=warm_start and warm_kind == "carried")
     train_s = time.perf_counter() - t_train
     t_extract = time.perf_counter()
     mesh, border, ex_stats = _extract(problem, field, tile, config, border_pins, progress, dev)
@@ -277,10 +278,11 @@ def _warm_field(warm: dict[str, torch.Tensor] | None, fraction: float, config: F
 
 def _train(
     problem: TileProblem, field: SemanticSDFField, config: FusionConfig, gen: torch.Generator,
-    progress: ProgressCallback | None, all_levels: bool = False,
+    progress: ProgressCallback | None, all_levels: bool = False, settled: bool = False,
 ) -> tuple[dict[str, float], int]:
     """The paper's loop on one tile: LOD (``all_levels``: every level from the start, a warm field) →
-    posed batch → field + pose terms → step. Returns the last losses and the number of field evaluations."""
+    posed batch → field + pose terms → step. ``settled``: the field learnt this data's consensus targets
+    already, no new submap to build. Returns the last losses and the number of field evaluations."""
     terms_of_poses = PoseTerms.of(problem.submaps, problem.lo.device)
     optimiser = Optimiser(list(field.parameters()), problem.poses, config, config.iterations, config.pose_warmup)
     consensus = consensus_iterations(config, config.iterations)
@@ -289,7 +291,10 @@ def _train(
         # each time, so once, at the first of consensus_at's steps. Not at step 0: until then the targets are 1
         # everywhere, and setting them from the start let more transients survive (exact seed 1 at the true
         # poses, `--rows oracle`: 8.0 -> 12.7 %, geo / sem F unchanged)
-        consensus = {min(consensus)}
+        # A field carried to a tile no new submap reaches (``settled``) learnt these targets already and has no new
+        # surface to build: they hold from its first step, else its first steps teach confidence 1 to what the
+        # consensus had dropped and its few steps do not take it back
+        consensus = {0 if settled else min(consensus)}
     report = Reporter(progress, config.iterations, "train")
     evaluated = 0
     for it in range(config.iterations):

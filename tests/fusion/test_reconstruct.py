@@ -85,6 +85,16 @@ def test_held_poses_get_their_consensus_targets_once(monkeypatch: pytest.MonkeyP
     subs[1].free = True
     reconstruct_tile(subs, TILE, cfg)
     assert steps == [8, 14]
+    # a field carried to a tile no new submap reaches learnt the targets already and has no surface to build:
+    # they hold from its first step (with confidence 1 taught before it, its few steps let what the consensus
+    # had dropped back); a re-fusion with new submaps, or a start from the alignment's field, keeps the rule
+    subs[1].free = False
+    half = cfg.with_(refusion_warm_fraction=0.5, refusion_carried_fraction=0.5, recon_warm_fraction=0.5)
+    for kind, first in [("carried", 0), ("reconstruction", 4), ("alignment", 4)]:
+        steps.clear()
+        calls.clear()
+        again = reconstruct_tile(subs, TILE, half, warm=held.field_state, warm_kind=kind)
+        assert again.metrics["warm_kind"] == kind and steps == [first], kind
 
 
 def test_deterministic_under_seed() -> None:
