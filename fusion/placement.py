@@ -17,7 +17,7 @@ how far each tile's surface moved, and :func:`settle_realignment` which tiles ke
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -196,6 +196,12 @@ def motion_report(motion: Mapping[Tile, float]) -> dict[str, float | None]:
     """:func:`tile_motion` as a job's or a bench row's figures: ``"i_j"`` → metres (4 decimals), None where
     a new submap is."""
     return {f"{i}_{j}": round(d, 4) if math.isfinite(d) else None for (i, j), d in sorted(motion.items())}
+
+
+def quiet_tiles(tiles: Iterable[Tile], motion: Mapping[Tile, float]) -> list[Tile]:
+    """The tiles of ``tiles`` no submap new to the map reaches (:func:`tile_motion` finite there), sorted: a
+    carried field there has nothing new to build (``FusionConfig.refusion_carried_fraction``)."""
+    return sorted(t for t in tiles if math.isfinite(motion.get(t, math.inf)))
 
 
 def settle_realignment(

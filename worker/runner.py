@@ -13,7 +13,6 @@ the tile state (``fused``, or ``dirty`` when uploads arrived during the fusion) 
 from __future__ import annotations
 
 import logging
-import math
 import os
 import socket
 import time
@@ -27,7 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from fusion.drift import Drift, corrected_input
 from fusion.errors import FusionError, FusionLibraryError
 from fusion.field import moved_state, pack_state, unpack_state
-from fusion.placement import motion_report, settle_realignment, tile_carry
+from fusion.placement import motion_report, quiet_tiles, settle_realignment, tile_carry
 from fusion.tiles import surface_tiles
 from fusion.types import FusedMesh, FusionResult, Pose
 from service.broker import enqueue
@@ -178,7 +177,7 @@ def _run_alignment(
             poses, kept, moved, carry = _settle(inputs, poses, drifts, claim.tiles, settings.tile_size)
             metrics["tile_moved_m"] = motion_report(moved)
             carried = _carried_fields(factory, blobs, carry)
-            quiet = [key for key in sorted(carried) if math.isfinite(moved.get(key, math.inf))]  # no new submap
+            quiet = quiet_tiles(carried, moved)
             metrics["carried_tiles"] = [list(key) for key in sorted(carried)]
             metrics["quiet_tiles"] = [list(key) for key in quiet]
         posed = [corrected_input(s, drifts.get(s.id)) for s in inputs.submaps if s.id in poses]

@@ -20,7 +20,6 @@ would more than double the CPU time and are not evaluated).
 from __future__ import annotations
 
 import json
-import math
 import tempfile
 import time
 from collections.abc import Callable
@@ -39,7 +38,7 @@ from fusion.eval import scoring
 from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
 from fusion.field import moved_state
 from fusion.offline import LoadedSubmap, fuse_tiles, reconstruct_tiles
-from fusion.placement import motion_report, settle_realignment, tile_carry
+from fusion.placement import motion_report, quiet_tiles, settle_realignment, tile_carry
 from fusion.regions import needs_realignment
 from fusion.tiles import surface_tiles, tile_bounds
 from fusion.types import FusedMesh, FusionResult, Pose, SubmapInput, TileSpec
@@ -319,7 +318,7 @@ def _realign(ctx: BenchContext, keys: list[tuple[int, int]], submaps: list[Loade
     again = [k for k in keys if k not in kept]
     previous, carried = (None, set()) if result.fields else _carried(
         inputs, before, poses, new_poses, again, ctx.tile_size, cfg, drifts, result.drifts)
-    quiet = {k for k in carried if math.isfinite(motion.get(k, math.inf))}  # no new submap reaches these
+    quiet = quiet_tiles(carried, motion)
     poses |= new_poses
     drifts.clear()
     drifts |= result.drifts

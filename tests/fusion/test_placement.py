@@ -139,3 +139,11 @@ def test_tile_carry_is_each_tiles_rigid_motion_in_its_own_frame() -> None:
     b_only = tile_carry([subs[1]], before, bent, [(1, 0)], tile_size=64.0, band_m=2.0)[(1, 0)]
     assert np.allclose(b_only[:3, 3], [0.3, 0.0, 0.0], atol=1e-9) and np.allclose(b_only[:3, :3], np.eye(3))
     assert 0.0 < alone[0, 3] - carry[(1, 0)][0, 3] < 0.3  # c's faces there pull it back towards the shift
+
+
+def test_quiet_tiles_are_those_no_new_submap_reaches() -> None:
+    """A tile a new submap reaches has infinite motion (``tile_motion``); one no face reaches is not quiet."""
+    from fusion.placement import quiet_tiles
+
+    motion = {(0, 0): math.inf, (1, 0): 0.3, (2, 0): 0.0}
+    assert quiet_tiles([(2, 0), (0, 0), (1, 0), (3, 0)], motion) == [(1, 0), (2, 0)]
