@@ -369,6 +369,16 @@ class FusionConfig:
     # ... asked only where that many sessions were there (any surface within this, m; 0: wherever the tile holds
     # that many sessions): a car parked on a street one session alone drove is kept, nothing says it was gone
     consensus_movable_cover_m: float = 0.0
+    # ... and a witness of a movable point lies at most this far below it (m; within consensus_radius_m above
+    # and to the sides): the road another session saw under a car one session saw is evidence against the car
+    # (that session saw through it), not a witness of its lower body (fusion.sampling.consensus_targets;
+    # >= consensus_radius_m: the plain cube). At the true poses, share of movable pool points kept (static /
+    # transient), 0.5 -> 0.25: exact 1 0.724/0.251 -> 0.724/0.029, exact 0 0.749/0.023 -> 0.748/0.003, camera 0
+    # 0.509/0.018 -> 0.501/0.001, camera 1 0.594/0.021 -> 0.591/0.000. 3x3 bench, same data (geo F / sem F /
+    # transient): exact 1 0.985/0.778/13.5 % -> 0.985/0.789/3.9 %, exact 0 0.985/0.828/1.7 % -> 0.985/0.821/1.4 %,
+    # camera 0 0.775/0.357/0.8 % -> 0.775/0.375/1.3 %, camera 1 0.924/0.426/0.3 % both (docs/METHOD_LOG.md,
+    # "The road beneath a car is no witness")
+    consensus_movable_below_m: float = 0.25
     consensus_movable: tuple[str, ...] = ("vehicle", "obstacle")
     # minimum thickness (reconstruction only): surface samples of thin upright classes sit this far out along
     # their normal, so a pole, sign plate or fence thinner than ~2 of the finest cells keeps a negative
@@ -432,6 +442,8 @@ class FusionConfig:
             raise ValueError(f"fine_solver must be one of {FINE_SOLVERS}, got {self.fine_solver!r}")
         if self.consensus_movable_cover_m < 0:
             raise ValueError(f"consensus_movable_cover_m must be >= 0 (0: off), got {self.consensus_movable_cover_m}")
+        if self.consensus_movable_below_m < 0:
+            raise ValueError(f"consensus_movable_below_m must be >= 0, got {self.consensus_movable_below_m}")
         if self.consensus_overhang_m < 0:
             raise ValueError(f"consensus_overhang_m must be >= 0 (0: off), got {self.consensus_overhang_m}")
         if self.thin_inflate_m < 0:

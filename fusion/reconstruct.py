@@ -175,7 +175,8 @@ def set_consensus(problem: TileProblem, poses_tile: torch.Tensor, config: Fusion
                                          column_m=config.consensus_column_m, movable=movable,
                                          movable_sessions=config.consensus_movable_sessions,
                                          movable_cover_m=config.consensus_movable_cover_m,
-                                         overhang_m=config.consensus_overhang_m)
+                                         overhang_m=config.consensus_overhang_m,
+                                         movable_below_m=config.consensus_movable_below_m)
 
 
 def active_levels(it: int, config: FusionConfig) -> int:

@@ -234,7 +234,7 @@ def consensus_targets(
     pool_tile: Tensor, pool_session: Tensor, near_m: float, cover_m: float, max_cells: int = 1 << 27,
     keep_fraction: float | None = None, c_th: float = 0.7, normals: Tensor | None = None,
     column_m: float = 3.0, movable: Tensor | None = None, movable_sessions: int = 0,
-    movable_cover_m: float = 0.0, overhang_m: float = 0.0,
+    movable_cover_m: float = 0.0, overhang_m: float = 0.0, movable_below_m: float | None = None,
 ) -> Tensor:
     """Confidence target per pool point (P, 3) (tile frame, on any device): the fraction of the sessions
     with evidence about this surface that saw it (had a point within ~``near_m``).
@@ -262,6 +262,9 @@ def consensus_targets(
     is asked for only where at least ``movable_sessions`` sessions were there (had any surface within
     ~``movable_cover_m``): a car parked on a street that one session alone drove is kept, as nothing says
     it was not there; where another session passed and did not see it, it is dropped.
+    ``movable_below_m``: a movable point's witness must lie at most this far below it (within ~``near_m``
+    above it and to the sides, as before). The road another session saw where a car one session saw
+    stood is that session's evidence against the car (it saw through it), not a witness of its lower body.
 
     "Within r" is decided on occupancy grids (cells of r/2, r/4 for the cover), dilated by r with
     shifted ORs along each axis: a cube of half-width r up to one cell, not a ball. That is O(P + cells) per
@@ -282,6 +285,9 @@ def consensus_targets(
         against += hit_e & ~hit_n
     fraction = (near / (near + against).clamp(min=1)).float()
     if movable is not None and 1 < movable_sessions <= len(near_hit):
+        if movable_below_m is not None and movable_below_m < near_m and bool(movable.any()):
+            level = _within(pool_tile, pool_session, near_m, 2, max_cells, below_m=movable_below_m)
+            near = torch.where(movable, sum(h.int() for h in level), near)
         ask = movable & (near < movable_sessions)
         if movable_cover_m > 0:
             present = sum(h.int() for h in _within(pool_tile, pool_session, movable_cover_m, 2, max_cells))
@@ -370,26 +376,33 @@ def _cells(points: Tensor, cell: float, max_cells: int) -> tuple[float, list[int
     return cell, [int(d) + 1 for d in idx.max(0).values], idx
 
 
-def _within(points: Tensor, session: Tensor, radius_m: float, cells_per_radius: int, max_cells: int) -> list[Tensor]:
-    """Per session: (P,) bool, whether the session has a point within ``radius_m`` (cube, ±1 cell)."""
+def _within(points: Tensor, session: Tensor, radius_m: float, cells_per_radius: int, max_cells: int,
+            below_m: float | None = None) -> list[Tensor]:
+    """Per session: (P,) bool, whether the session has a point within ``radius_m`` (cube, ±1 cell).
+    ``below_m``: of the points below, only those within ``below_m`` (rounded to cells) count."""
     cell, dims, idx = _cells(points, radius_m / cells_per_radius, max_cells)
     k = max(1, round(radius_m / cell))
+    down = k if below_m is None else min(k, round(below_m / cell))
     flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
     out = []
     for s in torch.unique(session):
         occ = torch.zeros(dims[0] * dims[1] * dims[2], dtype=torch.bool, device=points.device)
         occ[flat[session == s]] = True
-        out.append(_dilate(occ.view(*dims), k).reshape(-1)[flat])
+        grown = _dilate(occ.view(*dims), k, (0, 1))
+        out.append(_dilate(grown, k, (2,), down=down).reshape(-1)[flat])
     return out
 
 
-def _dilate(grid: Tensor, k: int, axes: tuple[int, ...] | None = None) -> Tensor:
+def _dilate(grid: Tensor, k: int, axes: tuple[int, ...] | None = None, down: int | None = None) -> Tensor:
     """Boolean dilation by a (2k+1)³ cube (along ``axes``: all by default), one axis at a time with
-    shifted ORs (max_pool3d on float grids was ~10× slower on CPU)."""
+    shifted ORs (max_pool3d on float grids was ~10× slower on CPU). ``down``: along an axis, occupancy
+    reaches only this many cells towards higher indices (a surface below a point, for the z axis), k the
+    other way."""
     for axis in range(grid.ndim) if axes is None else axes:
         src, grid = grid, grid.clone()
         n = src.shape[axis]
         for o in range(1, min(k, n - 1) + 1):
-            grid.narrow(axis, o, n - o).logical_or_(src.narrow(axis, 0, n - o))
+            if down is None or o <= down:
+                grid.narrow(axis, o, n - o).logical_or_(src.narrow(axis, 0, n - o))
             grid.narrow(axis, 0, n - o).logical_or_(src.narrow(axis, o, n - o))
     return grid

@@ -462,6 +462,7 @@ COMPONENTS: tuple[str, ...] = (
     "consensus_evidence=cover",  # ... counting every session near a surface, not only those that saw through it
     "consensus_movable_sessions=0",  # ... vehicles and obstacles kept without a second session's witness
     "consensus_movable_cover_m=5",  # ... a second witness asked only where a second session was within 5 m
+    "consensus_movable_below_m=0.5",  # ... the road another session saw beneath a car counted as its witness
     "thin_inflate_m=0",  # poles, sign plates and fences reconstructed as thin as the uploads say
     "thin_deflate=false",  # ... inflated, and their extracted faces not moved back in by as much
     "recon_warm_fraction=0",  # reconstruction from scratch, not from the alignment's field

@@ -134,6 +134,8 @@ def test_config_overrides_parse_each_fields_type() -> None:
     assert cfg.consensus_movable == ("vehicle", "pole") and cfg.movable_label_ids() == [10, 7]
     with pytest.raises(ValueError, match="unknown labels: car"):
         FusionConfig().with_overrides(["consensus_movable=car"])
+    with pytest.raises(ValueError, match="consensus_movable_below_m must be >= 0"):
+        FusionConfig(consensus_movable_below_m=-0.25)
     for bad in (["nope=1"], ["iterations=1.5"], ["consensus=maybe"], ["iterations"]):
         with pytest.raises(ValueError, match=f"^'{bad[0]}': "):  # the item named; the caller says where it came from
             FusionConfig().with_overrides(bad)

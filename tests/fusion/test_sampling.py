@@ -235,6 +235,48 @@ def test_a_witness_is_a_surface_within_the_consensus_radius() -> None:
     assert near_any[close].min() == 1.0 and near_any[~m].min() == 1.0
 
 
+
+def test_the_road_beneath_a_car_is_no_witness_of_its_lower_body() -> None:
+    """Session 0 saw a car (a 4 × 2 m box from 0.15 to 1.6 m over the road, no road beneath it); session 1
+    drove by when it was gone and saw the bare road there. A witness is any surface within the 0.5 m radius (a
+    cube of 0.25 m cells), so the road counted for the car's body up to 0.75 m: it kept 1 there. With
+    ``movable_below_m`` 0.25 a witness lies at most one cell below: only what is within 0.5 m of the road keeps
+    it. A car both sessions saw keeps every point either way (its witnesses stand level with it), and so does
+    the road; ``movable_below_m`` at the radius is the plain cube."""
+    rng = np.random.default_rng(8)
+    scene = _Scene()
+
+    def box(x0: float, s: int) -> None:
+        for y in (2.0, 4.0):  # the flanks
+            scene.add(np.column_stack([rng.uniform(x0, x0 + 4, 400), np.full(400, y), rng.uniform(0.15, 1.6, 400)]),
+                      (0.0, 1.0 if y > 3 else -1.0, 0.0), s, movable=True)
+        scene.add(_plane(rng, (x0, x0 + 4), (2, 4), 1.6, 300), (0.0, 0.0, 1.0), s, movable=True)  # the roof
+
+    for s in (0, 1):
+        road = _plane(rng, (0, 40), (0, 8), 0.0, 4000)
+        under = (road[:, 1] > 2) & (road[:, 1] < 4) & (((road[:, 0] > 10) & (road[:, 0] < 14)) | (road[:, 0] > 24)
+                                                       & (road[:, 0] < 28))
+        scene.add(road[~under if s == 1 else ~(under & (road[:, 0] < 20))], (0.0, 0.0, 1.0), s)
+        box(24.0, s)  # the parked car both saw: nothing under it in either session
+    box(10.0, 0)  # the car only session 0 saw; session 1's road runs beneath it
+    p, n, s, m = scene.tensors()
+    lone = m & (p[:, 0] < 20)
+    both = m & (p[:, 0] > 20)
+    low = lone & (p[:, 2] < 0.5)
+    body = lone & (p[:, 2] >= 0.5)
+    lower_body = body & (p[:, 2] < 0.75)
+    assert int(lone.sum()) == 1100 and int(both.sum()) == 2200
+
+    cube = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, movable=m, movable_sessions=2)
+    level = consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, movable=m, movable_sessions=2,
+                              movable_below_m=0.25)
+    assert cube[lower_body].min() == 1.0 and cube[low].min() == 1.0  # the road witnessed the lower body
+    assert level[body].max() == 0.0 and level[low].min() == 1.0
+    assert level[both].min() == 1.0 and cube[both].min() == 1.0
+    assert torch.equal(level[~m], cube[~m]) and level[~m].min() == 1.0
+    assert torch.equal(consensus_targets(p, s, 0.5, 2.5, normals=n, column_m=3.0, movable=m, movable_sessions=2,
+                                         movable_below_m=0.5), cube)
+
 def test_calibrated_confidence_keeps_what_enough_observers_saw() -> None:
     """c_th 0.7, keep 0.55: 2 of 3 and 3 of 5 observers keep a surface (the raw fraction, 0.67 and 0.6,
     dropped both), 1 of 2, 1 of 3 and 2 of 5 do not. Monotone, 0 and 1 fixed; keep = c_th is the raw fraction."""
