@@ -47,7 +47,7 @@ from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.reconstruct import TileProblem, build_problem, overlapping, set_consensus
 from fusion.register import fine_register
-from fusion.runtime import cpu_threads, resolve_device
+from fusion.runtime import cpu_threads, reproducible, resolve_device
 from fusion.sampling import SurfacePool, face_geometry, sample_batch
 from fusion.schedule import content_iterations, tile_content
 from fusion.training import Optimiser, PoseTerms, Reporter, consensus_iterations, loss_values, map_poses
@@ -114,61 +114,62 @@ def align_region(
     """
     t_start = time.perf_counter()
     dev = resolve_device(device or config.device)
-    torch.manual_seed(config.seed)
-    gen = torch.Generator().manual_seed(config.seed)
-    frozen = frozen or {}
-    subs = sorted(submaps, key=lambda s: s.id)  # independent of the input order
-    tiles = sorted(tiles, key=lambda t: (t.i, t.j))
-    if not tiles:
-        raise FusionError("align_region: no tiles", code="empty_tile")
-    if not any(s.free for s in subs):
-        raise FusionError("align_region: no free submap to align", code="empty_tile")
-    size = tiles[0].size_m
-    origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
-    poses, gps, coarse, drifts = _region_poses(subs, origin, config, dev)
-    subs = [corrected_input(s, drifts.get(s.id)) for s in subs]  # the field sees each submap as corrected
-    held = any((t.i, t.j) in frozen for t in tiles)  # a map is there: new submaps are added to it
-    per_tile = config.align_incremental_iterations_per_tile if held else config.align_iterations_per_tile
-    polish = config.fine_register and config.fine_polish_rounds > 0
-    gain = (coarse.get("fine", {}).get("rounds") or [{}])[-1].get("gain", 1.0)
-    if per_tile == 0:  # registration only: no field is trained (nor tracked against)
-        if polish and _polish_weight(gain, config) > config.fine_weight:
-            poses, coarse["polish"] = _polish(subs, poses, gps, config, dev, gain)  # tight matches: trusted more
-        return AlignResult(map_poses(poses, origin, subs), {}, drifts=drifts, metrics={
-            "losses": {}, "iterations": 0, "incremental": held, "registration_only": True,
-            "duration_s": time.perf_counter() - t_start, "duration_train_s": 0.0, "device": str(dev),
-            "num_submaps": len(subs), "num_free": int(sum(s.free for s in subs)), "num_tiles": len(tiles),
-            "frozen_tiles": [], "skipped": {}, "coarse": coarse})
-    built, skipped = _build_tiles(subs, tiles, config, dev, poses, origin, frozen)
-    incremental = any(t.frozen for t in built)
-    if not incremental:  # no frozen field among the region's tiles: a first alignment after all
-        per_tile = config.align_iterations_per_tile
-    contents = [tile_content(_posed(t, poses()), t.problem.lo, t.problem.hi, config) for t in built]
-    iterations = content_iterations(per_tile, contents, config)  # a grazed tile adds ~nothing
-    t_train = time.perf_counter()
-    losses = _train(built, subs, poses, gps, config, iterations, gen, progress)
-    train_s = time.perf_counter() - t_train
-    if polish:
-        poses, coarse["polish"] = _polish(subs, poses, gps, config, dev, gain)
-    fields = {t.key: field_state(t.field) for t in built}
-    metrics = {
-        "losses": losses,
-        "iterations": iterations,
-        "incremental": incremental,
-        "duration_s": time.perf_counter() - t_start,
-        "duration_train_s": train_s,
-        "device": str(dev),
-        "num_submaps": len(subs),
-        "num_free": int(sum(s.free for s in subs)),
-        "num_tiles": len(built),
-        "frozen_tiles": [list(t.key) for t in built if t.frozen],
-        "tile_pool_points": {f"{t.key[0]}_{t.key[1]}": int(t.problem.pool.points.shape[0]) for t in built},
-        "tile_share": {f"{t.key[0]}_{t.key[1]}": round(t.share, 4) for t in built},
-        "tile_content": {f"{t.key[0]}_{t.key[1]}": round(c, 4) for t, c in zip(built, contents, strict=True)},
-        "skipped": skipped,
-        "coarse": coarse,
-    }
-    return AlignResult(map_poses(poses, origin, subs), fields, metrics, drifts)
+    with reproducible(dev):
+        torch.manual_seed(config.seed)
+        gen = torch.Generator().manual_seed(config.seed)
+        frozen = frozen or {}
+        subs = sorted(submaps, key=lambda s: s.id)  # independent of the input order
+        tiles = sorted(tiles, key=lambda t: (t.i, t.j))
+        if not tiles:
+            raise FusionError("align_region: no tiles", code="empty_tile")
+        if not any(s.free for s in subs):
+            raise FusionError("align_region: no free submap to align", code="empty_tile")
+        size = tiles[0].size_m
+        origin = np.array([min(t.i for t in tiles) * size, min(t.j for t in tiles) * size, 0.0])
+        poses, gps, coarse, drifts = _region_poses(subs, origin, config, dev)
+        subs = [corrected_input(s, drifts.get(s.id)) for s in subs]  # the field sees each submap as corrected
+        held = any((t.i, t.j) in frozen for t in tiles)  # a map is there: new submaps are added to it
+        per_tile = config.align_incremental_iterations_per_tile if held else config.align_iterations_per_tile
+        polish = config.fine_register and config.fine_polish_rounds > 0
+        gain = (coarse.get("fine", {}).get("rounds") or [{}])[-1].get("gain", 1.0)
+        if per_tile == 0:  # registration only: no field is trained (nor tracked against)
+            if polish and _polish_weight(gain, config) > config.fine_weight:
+                poses, coarse["polish"] = _polish(subs, poses, gps, config, dev, gain)  # tight matches: trusted more
+            return AlignResult(map_poses(poses, origin, subs), {}, drifts=drifts, metrics={
+                "losses": {}, "iterations": 0, "incremental": held, "registration_only": True,
+                "duration_s": time.perf_counter() - t_start, "duration_train_s": 0.0, "device": str(dev),
+                "num_submaps": len(subs), "num_free": int(sum(s.free for s in subs)), "num_tiles": len(tiles),
+                "frozen_tiles": [], "skipped": {}, "coarse": coarse})
+        built, skipped = _build_tiles(subs, tiles, config, dev, poses, origin, frozen)
+        incremental = any(t.frozen for t in built)
+        if not incremental:  # no frozen field among the region's tiles: a first alignment after all
+            per_tile = config.align_iterations_per_tile
+        contents = [tile_content(_posed(t, poses()), t.problem.lo, t.problem.hi, config) for t in built]
+        iterations = content_iterations(per_tile, contents, config)  # a grazed tile adds ~nothing
+        t_train = time.perf_counter()
+        losses = _train(built, subs, poses, gps, config, iterations, gen, progress)
+        train_s = time.perf_counter() - t_train
+        if polish:
+            poses, coarse["polish"] = _polish(subs, poses, gps, config, dev, gain)
+        fields = {t.key: field_state(t.field) for t in built}
+        metrics = {
+            "losses": losses,
+            "iterations": iterations,
+            "incremental": incremental,
+            "duration_s": time.perf_counter() - t_start,
+            "duration_train_s": train_s,
+            "device": str(dev),
+            "num_submaps": len(subs),
+            "num_free": int(sum(s.free for s in subs)),
+            "num_tiles": len(built),
+            "frozen_tiles": [list(t.key) for t in built if t.frozen],
+            "tile_pool_points": {f"{t.key[0]}_{t.key[1]}": int(t.problem.pool.points.shape[0]) for t in built},
+            "tile_share": {f"{t.key[0]}_{t.key[1]}": round(t.share, 4) for t in built},
+            "tile_content": {f"{t.key[0]}_{t.key[1]}": round(c, 4) for t, c in zip(built, contents, strict=True)},
+            "skipped": skipped,
+            "coarse": coarse,
+        }
+        return AlignResult(map_poses(poses, origin, subs), fields, metrics, drifts)
 
 
 def start_poses(submaps: list[SubmapInput], config: FusionConfig, device: str | None = None

@@ -24,7 +24,7 @@ from fusion.extract import extract_mesh
 from fusion.field import SemanticSDFField, field_from_state, field_state
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
-from fusion.runtime import cpu_threads, resolve_device
+from fusion.runtime import cpu_threads, reproducible, resolve_device
 from fusion.sampling import (
     SpaceBoxes,
     SurfacePool,
@@ -212,51 +212,52 @@ def reconstruct_tile(
     """
     t_start, cpu_start = time.perf_counter(), time.process_time()
     dev = resolve_device(device or config.device)
-    torch.manual_seed(config.seed)
-    gen = torch.Generator().manual_seed(config.seed)
-    problem = build_problem(submaps, tile, config, dev, inflate_thin=True)
-    content = tile_content(_posed_pool(problem), problem.lo, problem.hi, config)  # steps ∝ content (recorded)
-    steps = content_iterations(config.iterations, [content], config)
-    fraction = warm_fraction(config, warm_kind)
-    field = _warm_field(warm, fraction, config, dev)
-    if field is not None:
-        steps = max(1, round(steps * fraction))
-    warm_start = field is not None
-    config = config.with_(iterations=steps)
-    if field is None:
-        field = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
-        allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
-        if callable(allocate):
-            allocate(field.norm(_posed_pool(problem)))
-    t_train = time.perf_counter()
-    losses, evaluated = _train(problem, field, config, gen, progress, all_levels=warm_start,
-                               settled=warm_start and warm_kind == "carried")
-    train_s = time.perf_counter() - t_train
-    t_extract = time.perf_counter()
-    mesh, border, ex_stats = _extract(problem, field, tile, config, border_pins, progress, dev)
-    extract_s = time.perf_counter() - t_extract
-    metrics = {
-        "losses": losses,
-        "iterations": config.iterations,
-        "content": content,
-        "duration_s": time.perf_counter() - t_start,
-        # CPU seconds of every thread of the process (other work running in it meanwhile counts too): on a shared
-        # machine less inflated by the load than duration_s
-        "cpu_s": time.process_time() - cpu_start,
-        "duration_train_s": train_s,
-        "duration_extract_s": extract_s,
-        "points_per_s": evaluated / max(train_s, 1e-9),
-        "device": str(dev),
-        "warm_start": warm_start,
-        "warm_kind": warm_kind if warm_start else None,
-        "num_submaps": len(problem.submaps),
-        "num_free": int(sum(sm.free for sm in problem.submaps)),
-        "pool_points": int(problem.pool.points.shape[0]),
-        "mean_conf_target": float(problem.pool.conf_target.mean()),
-        "extract": ex_stats,
-    }
-    poses = map_poses(problem.poses, problem.origin, problem.submaps)
-    return FusionResult(mesh, poses, metrics, config.to_dict(), border, field_state(field))
+    with reproducible(dev):
+        torch.manual_seed(config.seed)
+        gen = torch.Generator().manual_seed(config.seed)
+        problem = build_problem(submaps, tile, config, dev, inflate_thin=True)
+        content = tile_content(_posed_pool(problem), problem.lo, problem.hi, config)  # steps ∝ content (recorded)
+        steps = content_iterations(config.iterations, [content], config)
+        fraction = warm_fraction(config, warm_kind)
+        field = _warm_field(warm, fraction, config, dev)
+        if field is not None:
+            steps = max(1, round(steps * fraction))
+        warm_start = field is not None
+        config = config.with_(iterations=steps)
+        if field is None:
+            field = SemanticSDFField(config, problem.lo, problem.hi).to(dev)
+            allocate = getattr(field.grid, "allocate", None)  # sparse ("octree") grids keep cells near the data only
+            if callable(allocate):
+                allocate(field.norm(_posed_pool(problem)))
+        t_train = time.perf_counter()
+        losses, evaluated = _train(problem, field, config, gen, progress, all_levels=warm_start,
+                                   settled=warm_start and warm_kind == "carried")
+        train_s = time.perf_counter() - t_train
+        t_extract = time.perf_counter()
+        mesh, border, ex_stats = _extract(problem, field, tile, config, border_pins, progress, dev)
+        extract_s = time.perf_counter() - t_extract
+        metrics = {
+            "losses": losses,
+            "iterations": config.iterations,
+            "content": content,
+            "duration_s": time.perf_counter() - t_start,
+            # CPU seconds of every thread of the process (other work running in it meanwhile counts too): on a shared
+            # machine less inflated by the load than duration_s
+            "cpu_s": time.process_time() - cpu_start,
+            "duration_train_s": train_s,
+            "duration_extract_s": extract_s,
+            "points_per_s": evaluated / max(train_s, 1e-9),
+            "device": str(dev),
+            "warm_start": warm_start,
+            "warm_kind": warm_kind if warm_start else None,
+            "num_submaps": len(problem.submaps),
+            "num_free": int(sum(sm.free for sm in problem.submaps)),
+            "pool_points": int(problem.pool.points.shape[0]),
+            "mean_conf_target": float(problem.pool.conf_target.mean()),
+            "extract": ex_stats,
+        }
+        poses = map_poses(problem.poses, problem.origin, problem.submaps)
+        return FusionResult(mesh, poses, metrics, config.to_dict(), border, field_state(field))
 
 
 def warm_fraction(config: FusionConfig, kind: WarmKind) -> float:
