@@ -46,21 +46,6 @@ from fusion.types import FusedMesh, FusionResult, Pose, SubmapInput, TileSpec
 TARGETS = {"geo_f": 0.92, "sem_f": 0.80, "pose_trans_m": 0.10, "pose_rot_deg": 0.2}
 
 
-def merge_meshes(meshes: list[FusedMesh]) -> FusedMesh:
-    """One mesh holding all ``meshes`` (vertices concatenated; faces re-indexed)."""
-    meshes = [m for m in meshes if len(m.faces)]
-    if not meshes:
-        return FusedMesh.empty()
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-    return FusedMesh(
-        np.concatenate([m.vertices for m in meshes]).astype(np.float32),
-        np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]).astype(np.int32),
-        np.concatenate([m.vertex_labels for m in meshes]),
-        np.concatenate([m.vertex_confidence for m in meshes]),
-        np.concatenate([m.face_labels for m in meshes]),
-    )
-
-
 def _border_samples(mesh: FusedMesh, axis: int, line: float, step: float, tol: float) -> np.ndarray:
     """Points every ``step`` metres along the mesh's edges that lie on the border line (both ends within
     ``tol`` of it): the curve where the tile's surface meets the border. A face touching the border in a
@@ -147,7 +132,7 @@ def evaluate_region(ctx: BenchContext, results: dict[tuple[int, int], FusionResu
     """Whole-map (gauge-aligned and absolute) and per-tile figures; ``poses`` None: already in the true
     gauge. The gauge is fitted over every submap (poses only)."""
     gauge = scoring.submap_gauge(ctx.submaps, poses, ctx.truth.poses) if poses is not None else None
-    whole = merge_meshes([r.mesh for r in results.values()])
+    whole = scoring.merge_meshes([r.mesh for r in results.values()])
     out = scoring.score_aligned_and_absolute(ctx.points, whole, gauge)
     per_tile = {}
     for (i, j), res in sorted(results.items()):

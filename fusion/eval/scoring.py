@@ -54,6 +54,21 @@ class TruthPoints:
                            None if self.contested is None else metrics.crop(self.contested, region))
 
 
+def merge_meshes(meshes: list[FusedMesh]) -> FusedMesh:
+    """One mesh holding all ``meshes`` (vertices concatenated; faces re-indexed)."""
+    meshes = [m for m in meshes if len(m.faces)]
+    if not meshes:
+        return FusedMesh.empty()
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    return FusedMesh(
+        np.concatenate([m.vertices for m in meshes]).astype(np.float32),
+        np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]).astype(np.int32),
+        np.concatenate([m.vertex_labels for m in meshes]),
+        np.concatenate([m.vertex_confidence for m in meshes]),
+        np.concatenate([m.face_labels for m in meshes]),
+    )
+
+
 def sample_truth(truth: Any, region: metrics.Region | None, density: float = metrics.DEFAULT_DENSITY,
                  uploads: dict[str, np.ndarray] | None = None) -> TruthPoints:
     """Sample the simulator's ``truth`` (``GroundTruth``) at ``density`` points per m² (seeds 2, 3, 4 for

@@ -1,14 +1,17 @@
 """``fleetmap demo``: the whole system on one machine, in a few minutes on a 2-core CPU.
 
-1. simulates a fleet driving through a synthetic labelled world (``fusion.eval.synth``; ``DEMO_CORE``),
-2. starts the embedded service (``fleetmap serve`` on a free loopback port, SQLite and blobs under
-   ``OUT/data``, auth off, 2 s debounce) with its embedded fusion worker,
+1. simulates a fleet driving through a synthetic labelled world (``fusion.eval.synth``; ``WORLDS``:
+   ``demo`` four tiles around a corner, ``bench`` the 3×3-tile core of ``fleetmap bench``),
+2. starts the service (``fleetmap serve`` on a free loopback port, SQLite and blobs under ``OUT/data``
+   or ``--database-url``, auth off, 2 s debounce) with its embedded fusion worker, or with ``--broker``
+   as production runs it: ``--workers`` Celery workers (``fleetmap worker``) on a queue of its own,
 3. uploads every submap over HTTP as vehicles would (multipart ``meta`` + ``mesh``),
 4. shows the tiles' states while they fuse, downloads the fused meshes (PLY + GLB) and refined poses,
 5. draws ``map.png`` from what it downloaded (``service.client.mapimage``: the fused tiles top-down by
    label, the GPS and refined trajectories),
-6. prints an evaluation against the simulator's ground truth (``fusion.eval.scoring``) and the viewer's
-   URL; ``--serve`` keeps the service running for it until Ctrl-C.
+6. prints an evaluation against the simulator's ground truth (``fusion.eval.scoring``): per tile, and for
+   the whole core the figures ``fleetmap bench`` prints for its fused row, with how many times each tile
+   was fused; then the viewer's URL (``--serve`` keeps the service running for it until Ctrl-C).
 
 It waits for every tile: the fleet's region is aligned once, then each tile is reconstructed, each in
 steps proportional to its content (``fusion.schedule``; a tile its submaps only graze through their GPS
@@ -27,6 +30,7 @@ import socket
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +46,10 @@ SERVER_START_S = 90.0
 # about 3 minutes on 2 cores (the bench's world, one 64 m tile driven through, touches nine tiles, five
 # of them only along their edges).
 DEMO_CORE = ((44.0, 44.0), (84.0, 84.0))
+# ``bench``: the world of ``fleetmap bench`` (3×3 tiles of 64 m, a loop, a junction, a slope), to measure
+# through the service what the bench measures offline
+WORLDS = {"demo": DEMO_CORE, "bench": ((0.0, 0.0), (192.0, 192.0))}
+DEFAULT_SESSIONS = {"demo": 3, "bench": 5}
 
 
 def _free_port() -> int:
@@ -63,10 +71,10 @@ def _prepare_out(out: Path) -> None:
     (out / MARKER).write_text("written by `fleetmap demo`; safe to delete\n")
 
 
-def start_server(out: Path, preset: str, debounce_s: float, port: int = 0) -> tuple[subprocess.Popen[bytes], str]:
-    """``fleetmap serve`` (embedded) on ``port`` (0: a free one), started: returns the process and its
-    base URL at once (``wait_until_up`` waits for it: it starts while the fleet is simulated)."""
-    port = port or _free_port()
+def service_env(out: Path, preset: str, debounce_s: float, broker: str | None = None,
+                database_url: str | None = None) -> dict[str, str]:
+    """The environment of the demo's ``fleetmap serve`` (and, with ``broker``, its workers): data under
+    ``out/data``, auth off, this run's own Celery queue (a shared broker may hold other queues)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")}
     env.update(
         FLEETMAP_DATA_DIR=str(out / "data"),
@@ -77,15 +85,52 @@ def start_server(out: Path, preset: str, debounce_s: float, port: int = 0) -> tu
         FLEETMAP_LEASE_S="600",
         FLEETMAP_LOG_LEVEL=os.environ.get("FLEETMAP_LOG_LEVEL", "INFO"),
     )
+    if broker:
+        env.update(FLEETMAP_BROKER_URL=broker, FLEETMAP_FUSION_QUEUE=f"fleetmap-demo-{uuid.uuid4().hex[:12]}")
+    if database_url:
+        env["FLEETMAP_DATABASE_URL"] = database_url
+    return env
+
+
+def _fleetmap(*args: str) -> list[str]:
+    return [sys.executable, "-m", "service.cli", *args]
+
+
+def start_server(out: Path, env: dict[str, str], port: int = 0) -> tuple[subprocess.Popen[bytes], str]:
+    """``fleetmap serve`` on ``port`` (0: a free one) with ``env`` (``service_env``), started: returns the
+    process and its base URL at once (``wait_until_up`` waits for it: it starts while the fleet is
+    simulated). With a broker the database is upgraded first (the embedded mode does it on start)."""
+    port = port or _free_port()
+    if env.get("FLEETMAP_BROKER_URL"):
+        done = subprocess.run(_fleetmap("db", "upgrade"), env=env, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise SystemExit(f"fleetmap db upgrade failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
     with open(out / "serve.log", "wb") as log:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1", "--port", str(port)],
+            _fleetmap("serve", "--host", "127.0.0.1", "--port", str(port)),
             env=env,
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
         )
     return proc, f"http://127.0.0.1:{port}"
+
+
+def start_workers(out: Path, env: dict[str, str], count: int) -> list[subprocess.Popen[bytes]]:
+    """``count`` Celery fusion workers (``fleetmap worker``, one job at a time each) on the run's queue,
+    the host's cores shared among them; logs ``out/worker-N.log``."""
+    threads = max(1, (os.cpu_count() or 1) // count)
+    procs = []
+    for n in range(1, count + 1):
+        with open(out / f"worker-{n}.log", "wb") as log:
+            procs.append(subprocess.Popen(
+                _fleetmap("worker", "--concurrency", "1", "--loglevel", "info"),
+                env=env | {"FLEETMAP_TORCH_THREADS": str(threads)},
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            ))
+    return procs
 
 
 def wait_until_up(proc: subprocess.Popen[bytes], base: str, out: Path) -> None:
@@ -174,6 +219,22 @@ def wait_for_tiles(
         time.sleep(1.0)
 
 
+def wait_settled(client: httpx.Client, wanted: set[tuple[int, int]], tiles: list[dict[str, Any]],
+                 settle_s: float, timeout_s: float) -> list[dict[str, Any]]:
+    """Once every wanted tile is fused: watch ``settle_s`` more seconds; a tile queued again (a re-fusion the
+    fused poses called for) is waited for too. Returns the tiles as they settled (``version``: how many
+    times each was fused)."""
+    quiet_since = time.monotonic()
+    while time.monotonic() - quiet_since < settle_s:
+        time.sleep(1.0)
+        tiles = all_tiles(client)
+        if any(t["state"] not in ("fused", "failed") for t in tiles):
+            print("  a tile was queued again; waiting for it", flush=True)
+            tiles = wait_for_tiles(client, wanted | {(t["i"], t["j"]) for t in tiles}, timeout_s)
+            quiet_since = time.monotonic()
+    return tiles
+
+
 def _busy(tiles: list[dict[str, Any]]) -> list[str]:
     """The running jobs: ``aligning N tiles P%`` for a region's alignment (one job leases all its
     tiles), ``fusing (i,j) P%`` for a tile's reconstruction."""
@@ -208,7 +269,10 @@ def download(client: httpx.Client, tiles: list[dict[str, Any]], meshes: Path) ->
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fleetmap demo", description=__doc__.splitlines()[0])
-    parser.add_argument("--sessions", type=_positive, default=3, help="vehicles driving through the world")
+    parser.add_argument("--world", choices=tuple(WORLDS), default="demo",
+                        help="demo: four tiles around a corner (default); bench: the 3×3 tiles of fleetmap bench")
+    parser.add_argument("--sessions", type=_positive, default=None,
+                        help="vehicles driving through the world (default 3; 5 in the bench world)")
     parser.add_argument("--seed", type=int, default=0, help="world and fleet seed")
     parser.add_argument("--sensor", choices=("camera", "exact"), default="camera",
                         help="the fleet's sensor model (fusion.eval.synth.camera; default camera)")
@@ -222,24 +286,39 @@ def main(argv: list[str] | None = None) -> int:
         "--serve", action="store_true", help="keep the service running for the viewer afterwards (Ctrl-C stops it)"
     )
     parser.add_argument("--port", type=int, default=0, help="the service's port (default: a free one)")
+    parser.add_argument("--broker", metavar="URL", default=None,
+                        help="fuse with Celery workers on this broker (e.g. redis://127.0.0.1:6379/0) instead of "
+                             "the embedded worker")
+    parser.add_argument("--workers", type=_positive, default=None, help="Celery workers with --broker (default 2)")
+    parser.add_argument("--database-url", metavar="URL", default=None,
+                        help="an empty database for the service (default: SQLite under OUT/data)")
     args = parser.parse_args(argv)
     if not 0 <= args.port <= 65535:
         parser.error(f"--port {args.port} is not a TCP port")
+    if args.workers and not args.broker:
+        parser.error("--workers needs --broker (the embedded worker is one process)")
+    sessions = args.sessions or DEFAULT_SESSIONS[args.world]
 
     out = args.out.resolve()
     _prepare_out(out)
     t0 = time.monotonic()
-    proc, base = start_server(out, args.preset, args.debounce, args.port)  # starts while the fleet drives
+    env = service_env(out, args.preset, args.debounce, args.broker, args.database_url)
+    proc, base = start_server(out, env, args.port)  # starts while the fleet drives
+    workers = start_workers(out, env, args.workers or 2) if args.broker else []
     try:
-        print(f"1/6 simulating {args.sessions} sessions (seed {args.seed}, {args.sensor} sensor) ...", flush=True)
-        records, truth = _simulate(out / "sim", args.seed, args.sessions, args.sensor)
+        print(f"1/6 simulating {sessions} sessions ({args.world} world, seed {args.seed}, {args.sensor} sensor) ...",
+              flush=True)
+        records, truth = _simulate(out / "sim", args.seed, sessions, args.sensor, WORLDS[args.world])
         print(f"    {len(records)} submaps, {sum(len(r.mesh.faces) for r in records):,} faces")
-        print("2/6 starting the embedded service (fleetmap serve + embedded worker) ...", flush=True)
+        fusing = f"{len(workers)} Celery workers on {args.broker}" if workers else "embedded worker"
+        print(f"2/6 starting the service (fleetmap serve + {fusing}) ...", flush=True)
         wait_until_up(proc, base, out)
         started = time.monotonic() - t0
         with httpx.Client(base_url=base, timeout=60) as client:
+            if all_tiles(client):
+                raise SystemExit("the service's database already holds tiles: give --database-url an empty database")
             print(f"    {base} (auth off, preset {args.preset}, debounce {args.debounce:g} s)")
-            report = _run(client, out, records, truth, args.timeout)
+            report = _run(client, out, records, truth, args.timeout, WORLDS[args.world])
         report["timings"] = {"simulation and start": started} | report["timings"]
         print_report(report, out, time.monotonic() - t0)
         if args.serve:
@@ -248,6 +327,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     finally:
         stop_server(proc)
+        for worker in workers:
+            stop_server(worker)
 
 
 def _positive(text: str) -> int:
@@ -257,18 +338,21 @@ def _positive(text: str) -> int:
     return value
 
 
-def _simulate(sim: Path, seed: int, sessions: int, sensor: str = "camera") -> tuple[list[Any], Any]:
-    """The simulated fleet's uploads (written under ``sim``) and its ground truth: ``DEMO_CORE``."""
+def _simulate(sim: Path, seed: int, sessions: int, sensor: str = "camera",
+              core: tuple[tuple[float, float], tuple[float, float]] = DEMO_CORE) -> tuple[list[Any], Any]:
+    """The simulated fleet's uploads (written under ``sim``) and its ground truth, driven through ``core``."""
     from fusion.eval.synth.simulate import load_ground_truth, simulate
     from fusion.eval.synth.world import WorldParams
 
-    world = WorldParams(core_min=DEMO_CORE[0], core_max=DEMO_CORE[1])
+    world = WorldParams(core_min=core[0], core_max=core[1])
     records = simulate(sim, seed=seed, sessions=sessions, world_params=world, sensor=sensor)
     return records, load_ground_truth(sim)
 
 
-def _run(client: httpx.Client, out: Path, records: list[Any], truth: Any, timeout_s: float) -> dict[str, Any]:
-    """Steps 3-6 against the running service: upload, wait for every tile, download, draw, evaluate."""
+def _run(client: httpx.Client, out: Path, records: list[Any], truth: Any, timeout_s: float,
+         core: tuple[tuple[float, float], tuple[float, float]] = DEMO_CORE, settle_s: float = 10.0) -> dict[str, Any]:
+    """Steps 3-6 against the running service: upload, wait for every tile (and ``settle_s`` more without a
+    tile leaving ``fused``), download, draw, evaluate (the whole map over ``core``)."""
     timings: dict[str, float] = {}
     t = time.monotonic()
     print("3/6 uploading submaps over HTTP ...", flush=True)
@@ -280,6 +364,8 @@ def _run(client: httpx.Client, out: Path, records: list[Any], truth: Any, timeou
     print(f"4/6 aligning and fusing {len(wanted)} tiles ...", flush=True)
     tiles = wait_for_tiles(client, wanted, timeout_s)
     timings["fusion"], t = time.monotonic() - t, time.monotonic()
+    tiles = wait_settled(client, wanted, tiles, settle_s, timeout_s)
+    timings["settling"], t = time.monotonic() - t, time.monotonic()
     plys = download(client, tiles, out / "meshes")
     sessions = sorted({r.session_id for r in records})
     poses = {s: client.get(f"/v1/sessions/{_quote(s)}/poses").json() for s in sessions}
@@ -289,7 +375,7 @@ def _run(client: httpx.Client, out: Path, records: list[Any], truth: Any, timeou
     draw_map(out / "map.png", client.get("/v1/labels").json(), tile_size, plys, poses)
     timings["download, map.png"], t = time.monotonic() - t, time.monotonic()
     print("6/6 evaluating against the ground truth ...", flush=True)
-    report = evaluate(truth, records, ids, tiles, plys, poses, jobs, tile_size)
+    report = evaluate(truth, records, ids, tiles, plys, poses, jobs, tile_size, core)
     timings["evaluation"] = time.monotonic() - t
     return report | {"timings": timings}
 
@@ -337,18 +423,28 @@ def evaluate(
     poses: dict[str, list[dict[str, Any]]],
     jobs: dict[tuple[int, int], dict[str, Any]],
     tile_size: float,
+    core: tuple[tuple[float, float], tuple[float, float]] = DEMO_CORE,
 ) -> dict[str, Any]:
     """Per fused tile: geometric P/R/F and mean semantic F at d = 0.2 m (the tile's square), gauge-aligned
     (``geo``, ``sem_f``: the meshes moved by the rigid fit of every submap's current pose, refined else
     GPS, onto its true pose, over a sample of its vertices; GPS fixes the map's absolute placement only
-    to a few decimetres) and in the absolute map frame (``abs_geo``, ``abs_sem_f``); poses: RMSE of GPS
-    and refined poses against the truth (after rigid alignment). Scoring: ``fusion.eval.scoring``."""
+    to a few decimetres) and in the absolute map frame (``abs_geo``, ``abs_sem_f``); ``map``: the tiles'
+    meshes together over the world's ``core``, scored as ``fleetmap bench`` scores its fused row
+    (``scoring.score_aligned_and_absolute``: per class F, surviving share of single-session objects);
+    poses: RMSE of GPS and refined poses against the truth (after rigid alignment). Scoring:
+    ``fusion.eval.scoring``."""
     from fusion.eval import scoring
+    from fusion.meshio import read_fused_ply
 
     gauge = _gauge(truth, records, ids, poses)
     world = scoring.sample_truth(truth, None)
     rows = [_tile_row(t, plys, jobs, world, gauge, tile_size) for t in tiles]
-    return {"tiles": rows, "poses": _pose_report(truth, records, ids, poses)}
+    core_truth = scoring.sample_truth(truth, core, uploads={r.name: r.mesh.vertices for r in records})
+    whole = scoring.merge_meshes([read_fused_ply(data) for data in plys.values()])
+    figures = scoring.score_aligned_and_absolute(core_truth, whole, gauge)
+    versions = [t["version"] for t in tiles]
+    return {"tiles": rows, "poses": _pose_report(truth, records, ids, poses),
+            "map": figures | {"core": core, "max_fusions": max(versions, default=0)}}
 
 
 def _gauge(
@@ -444,6 +540,8 @@ def print_report(report: dict[str, Any], out: Path, wall_s: float) -> None:
         )
     print("geo P/R/F, sem F: gauge-aligned (meshes moved by the rigid fit of the submaps' poses onto their true "
           "poses); abs: absolute map frame")
+    if "map" in report:
+        _print_map(report["map"])
     poses = report["poses"]
     if "gps" in poses:
         (gt, gr), (ft, fr) = poses["gps"], poses["fused"]
@@ -461,6 +559,19 @@ def print_report(report: dict[str, Any], out: Path, wall_s: float) -> None:
         f"(resume: FLEETMAP_DATA_DIR={out / 'data'} FLEETMAP_AUTH=off fleetmap serve)"
         f"\nserver log: {out / 'serve.log'}\ndone in {wall_s:.0f} s ({timings})"
     )
+
+
+def _print_map(figures: dict[str, Any]) -> None:
+    """The whole core's line: what ``fleetmap bench`` prints for its fused row."""
+    (x0, y0), (x1, y1) = figures["core"]
+    survival = figures.get("transient_survival")
+    print(
+        f"\nwhole map ({x1 - x0:g} × {y1 - y0:g} m core, gauge-aligned): geo P/R/F {figures['geo_p']:.3f} / "
+        f"{figures['geo_r']:.3f} / {figures['geo_f']:.3f}, sem F {figures['sem_f']:.3f}, abs geo F "
+        f"{figures['abs_geo_f']:.3f}, single-session objects kept {_f(survival, '{:.1%}')}; "
+        f"fusions per tile at most {figures['max_fusions']}"
+    )
+    print("  per class F: " + "  ".join(f"{name} {f:.2f}" for name, f in figures["per_class_f"].items()))
 
 
 def _quote(session_id: str) -> str:

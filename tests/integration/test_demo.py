@@ -102,8 +102,43 @@ def test_demo_refuses_a_foreign_folder_and_bad_options(tmp_path: Path) -> None:
     refused = subprocess.run([*run, "--out", str(foreign)], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert refused.returncode != 0 and (foreign / "keep.txt").exists()
     assert "not empty" in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
-    for bad in (["--sessions", "0"], ["--preset", "huge"], ["--port", "70000"]):
+    for bad in (["--sessions", "0"], ["--preset", "huge"], ["--port", "70000"], ["--workers", "2"],
+                ["--world", "moon"]):
         done = subprocess.run([*run, *bad, "--out", str(tmp_path / "x")], cwd=REPO, capture_output=True, text=True,
                               timeout=120)
         assert done.returncode == 2 and done.stderr.strip().splitlines()[-1].startswith("fleetmap demo: error:"), bad
         assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_demo_fuses_through_celery_workers_on_postgresql(tmp_path: Path) -> None:
+    """``--broker``: the service as production runs it (PostgreSQL, Redis, two ``fleetmap worker``
+    processes): the alignment and every tile's reconstruction run in the workers, each tile is fused once,
+    and the report scores the whole map as the bench does."""
+    from tests.production_support import TEST_REDIS_URL, fresh_database, pg_reachable, redis_or_skip
+
+    redis_or_skip(TEST_REDIS_URL)
+    if reason := pg_reachable():
+        pytest.skip(reason)
+    out = tmp_path / "demo"
+    with fresh_database() as url:
+        done = subprocess.run(
+            [sys.executable, "-m", "service.cli", "demo", "--sessions", "1", "--preset", "tiny", "--out", str(out),
+             "--broker", TEST_REDIS_URL, "--workers", "2", "--database-url", url],
+            cwd=REPO, capture_output=True, text=True, timeout=840,
+        )
+    logs = "".join(p.read_text() for p in sorted(out.glob("*.log")))
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:] + logs[-3000:]
+    lines = done.stdout.splitlines()
+    states = {(int(m.group(1)), int(m.group(2))): (m.group(3), line.split()[2])
+              for line in lines if (m := ROW.match(line))}
+    assert states and {s for s, _ in states.values()} == {"fused"}, done.stdout[-3000:]
+    assert {v for _, v in states.values()} == {"1"}  # one burst of uploads: each tile fused once
+    assert any(line.startswith("whole map (40 × 40 m core") and "fusions per tile at most 1" in line
+               for line in lines), done.stdout[-3000:]
+    assert any(line.strip().startswith("per class F: road") for line in lines)
+    ran = "".join((out / f"worker-{n}.log").read_text() for n in (1, 2))
+    succeeded = re.findall(r"Task (fleetmap\.\w+)\[[^\]]+\] succeeded", ran)
+    assert sorted(succeeded) == ["fleetmap.align_region"] + ["fleetmap.fuse_tile"] * len(states), ran[-3000:]

@@ -10,7 +10,8 @@ import pytest
 
 from fusion.config import FusionConfig
 from fusion.eval import bench_region
-from fusion.eval.bench_region import merge_meshes, seam_gaps
+from fusion.eval.bench_region import seam_gaps
+from fusion.eval.scoring import merge_meshes
 from fusion.types import FusedMesh, FusionResult
 
 
