@@ -320,6 +320,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"    {base} (auth off, preset {args.preset}, debounce {args.debounce:g} s)")
             report = _run(client, out, records, truth, args.timeout, WORLDS[args.world])
         report["timings"] = {"simulation and start": started} | report["timings"]
+        report["resume"] = _resume_command(env, bool(workers))
         print_report(report, out, time.monotonic() - t0)
         if args.serve:
             return serve_until_stopped(proc, base)
@@ -329,6 +330,13 @@ def main(argv: list[str] | None = None) -> int:
         stop_server(proc)
         for worker in workers:
             stop_server(worker)
+
+
+def _resume_command(env: dict[str, str], celery: bool) -> str:
+    """How to pick the run's service up again: its settings, then ``fleetmap serve`` (and workers)."""
+    keys = ("FLEETMAP_DATA_DIR", "FLEETMAP_DATABASE_URL", "FLEETMAP_BROKER_URL", "FLEETMAP_FUSION_QUEUE")
+    settings = " ".join(f"{k}={env[k]}" for k in keys if k in env) + " FLEETMAP_AUTH=off"
+    return f"{settings} fleetmap serve" + (" and fleetmap worker" if celery else "")
 
 
 def _positive(text: str) -> int:
@@ -556,7 +564,7 @@ def print_report(report: dict[str, Any], out: Path, wall_s: float) -> None:
         f"\nmap picture: {out / 'map.png'}\nfused meshes (PLY, GLB): {out / 'meshes'}"
         f"\nrefined poses: {out / 'poses.json'}"
         f"\nsimulated uploads and ground truth: {out / 'sim'}\nservice data: {out / 'data'} "
-        f"(resume: FLEETMAP_DATA_DIR={out / 'data'} FLEETMAP_AUTH=off fleetmap serve)"
+        f"(resume: {report['resume']})"
         f"\nserver log: {out / 'serve.log'}\ndone in {wall_s:.0f} s ({timings})"
     )
 
