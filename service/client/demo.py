@@ -104,7 +104,8 @@ def start_server(out: Path, env: dict[str, str], port: int = 0) -> tuple[subproc
     if env.get("FLEETMAP_BROKER_URL"):
         done = subprocess.run(_fleetmap("db", "upgrade"), env=env, capture_output=True, text=True)
         if done.returncode != 0:
-            raise SystemExit(f"fleetmap db upgrade failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
+            last = ((done.stderr or done.stdout).strip().splitlines() or ["no output"])[-1]
+            raise SystemExit(f"fleetmap db upgrade failed: {last}")
     with open(out / "serve.log", "wb") as log:
         proc = subprocess.Popen(
             _fleetmap("serve", "--host", "127.0.0.1", "--port", str(port)),
