@@ -67,7 +67,9 @@ def resolve_device(name: str | None) -> torch.device:
 @contextmanager
 def reproducible(dev: torch.device) -> Iterator[None]:
     """On a CPU device, torch's deterministic kernels for the duration (the previous setting restored
-    after): the same inputs and seed give the same field, poses and mesh, bit for bit. Without them two
+    after): the same inputs and seed give the same field, poses and mesh, bit for bit, on one machine and
+    thread count (another CPU or thread count reduces in another order: exact seed 1's sem F 0.774 on one
+    machine, 0.784 on another; one and two threads differ in the third decimal). Without them two
     runs of one tile differed after 20 steps (a CPU kernel that accumulates in thread order) and the
     bench's figures moved between runs of the same code (sem F ±0.02, single-session share 5-19 % on exact
     seed 1). Cost: none measured (one 64 m tile, 200 steps, 2 threads: 7.9-9.7 s against 7.7-12.0 s).
