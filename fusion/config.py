@@ -153,16 +153,20 @@ class FusionConfig:
     # each free submap's monocular drift (one scale, a slow yaw and pitch bend about its local origin,
     # fusion.drift) estimated with its pose in every round of the fine registration, then held: the field
     # alignment, the reconstruction and the service's later jobs see the corrected submap. Gauss-Newton
-    # solver only. Priors: scale σ and bend-rate σ (wide against a monocular mapper's ~1 % / ~0.02°/m).
-    # Whole pipeline, 3x3 bench, GPS 1.5 m, same run, off -> on (geo F / sem F / pose m; 2026-12-05,
-    # twenty-second session): camera 0 0.772/0.347/0.482 -> 0.790/0.352/0.441, camera 1 0.921/0.411/0.288 ->
-    # 0.920/0.408/0.243, camera 2 0.860/0.386/0.318 -> 0.889/0.398/0.326; exact 1 0.983/0.763/0.074 ->
-    # 0.981/0.746/0.110 (on exact submaps it finds 0.1-0.2 % scale RMS where there is none, and the poses
-    # suffer). Off by default: a monocular fleet's deployment turns it on
-    # (FLEETMAP_FUSION_SET="fine_drift=true"). docs/METHOD_LOG.md, "A submap's monocular drift"
-    fine_drift: bool = False
+    # solver only. Priors: scale σ and bend-rate σ (wide against a monocular mapper's ~1 % / ~0.02°/m) ...
+    fine_drift: bool = True
     fine_drift_scale_sigma: float = 0.02
     fine_drift_bend_deg_per_m: float = 0.04
+    # ... as ceilings: the priors' σ fitted to the fleet's own drift, one EM update per round (empirical Bayes,
+    # fusion.drift_fit.fit_prior), so that submaps that carry no drift keep almost none. Needs this many free
+    # submaps with a drift step, else the ceilings hold. With the fixed priors exact submaps took 0.1-0.2 %
+    # of scale and their poses suffered (exact 1, twenty-second session: 0.074 -> 0.110 m), so the drift was
+    # off by default. Fitted, 3x3 bench, GPS 1.5 m, same data, off -> on (geo F / sem F / abs geo F / pose m /
+    # deg): camera 0 0.772/0.370/0.729/0.469/0.50 -> 0.799/0.372/0.778/0.417/0.42, exact 0
+    # 0.984/0.824/0.729/0.083/0.08 -> 0.984/0.822/0.794/0.095/0.10 (docs/METHOD_LOG.md, "The drift prior
+    # fitted to the fleet")
+    fine_drift_prior_fit: bool = True
+    fine_drift_prior_min_submaps: int = 8
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
@@ -457,6 +461,8 @@ class FusionConfig:
             raise ValueError("fine_drift needs fine_solver=gn (the drift is solved with the normal equations)")
         if self.fine_drift and not (self.fine_drift_scale_sigma > 0 and self.fine_drift_bend_deg_per_m > 0):
             raise ValueError("fine_drift_scale_sigma and fine_drift_bend_deg_per_m must be > 0")
+        if self.fine_drift_prior_min_submaps < 1:
+            raise ValueError(f"fine_drift_prior_min_submaps must be >= 1, got {self.fine_drift_prior_min_submaps}")
         if self.detail_m < 0:
             raise ValueError(f"detail_m must be >= 0 (0: off), got {self.detail_m}")
         if not 0 <= self.realign_keep_m < math.inf:

@@ -46,23 +46,29 @@ def corrected_samples(raw: np.ndarray, owner: np.ndarray, bends: np.ndarray, axe
     return out
 
 
+def prior_sigmas(config: FusionConfig) -> np.ndarray:
+    """The drift priors' σ from the config: (log scale, yaw bend rad/m, pitch bend rad/m)."""
+    return np.array([config.fine_drift_scale_sigma, *[math.radians(config.fine_drift_bend_deg_per_m)] * 2])
+
+
 def drift_step(poses: torch.Tensor, match: Matches, samples: tuple[np.ndarray, np.ndarray], bends: np.ndarray,
-                raw: np.ndarray, axes: np.ndarray, local_cents: torch.Tensor, free: torch.Tensor,
-                config: FusionConfig) -> np.ndarray:
+               raw: np.ndarray, axes: np.ndarray, local_cents: torch.Tensor, free: torch.Tensor,
+               sigma_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One Gauss-Newton step of every free submap's drift parameters (``fusion.drift``; (M, 3)) on the round's
     matches, the other submaps held where they are.
 
     Each submap's step solves its drift jointly with a rigid correction of its own (9 unknowns, the IRLS
     weights of the matches at the current residuals) and keeps the drift part: the drift that fits best
     whatever rigid move goes with it, so a residual a rigid move explains (an offset the odometry holds
-    against) is not read as scale. The priors ``fine_drift_scale_sigma`` and ``fine_drift_bend_deg_per_m``
-    hold what the matches leave open; a step is kept within 3 σ of them.
+    against) is not read as scale. The priors ``sigma_p`` (log scale, yaw and pitch bend rates: the config's
+    ``prior_sigmas`` or the fleet's own, ``fit_prior``) hold what the matches leave open; a step is kept within
+    3 σ of them. Returns the new drift parameters (M, 3) and their posterior variances (M, 3; NaN for the
+    submaps without a step), for ``fit_prior``.
 
     ``raw``: every sample (local frame, as uploaded), ``samples`` the matches' source and target rows of it
     (``match.p_src`` / ``p_dst`` are their corrected copies); normals are held (the bend turns them by tenths
     of a degree)."""
     m = len(poses)
-    sigma_p = np.array([config.fine_drift_scale_sigma, *[math.radians(config.fine_drift_bend_deg_per_m)] * 2])
     with torch.no_grad():
         cents = ((poses[:, :3, :3] @ local_cents[:, :, None])[:, :, 0] + poses[:, :3, 3]).cpu().numpy()
         q_s = transform(poses, match.src, match.p_src).cpu().numpy()
@@ -85,7 +91,7 @@ def drift_step(poses: torch.Tensor, match: Matches, samples: tuple[np.ndarray, n
         jac *= sign
         np.add.at(h, who, weight[:, None, None] * jac[:, :, None] * jac[:, None, :])
         np.add.at(g, who, (weight * r)[:, None] * jac)
-    out = bends.copy()
+    out, variance = bends.copy(), np.full(bends.shape, np.nan)
     for k in np.flatnonzero(free.cpu().numpy()):
         if not h[k].any():
             continue
@@ -93,6 +99,27 @@ def drift_step(poses: torch.Tensor, match: Matches, samples: tuple[np.ndarray, n
         hk[6:, 6:] += np.diag(1.0 / sigma_p ** 2)
         gk[6:] += bends[k] / sigma_p ** 2
         hk += np.eye(9) * 1e-9 * max(np.trace(hk), 1.0)
-        step = np.linalg.solve(hk, -gk)[6:]
-        out[k] = np.clip(bends[k] + step, -3 * sigma_p, 3 * sigma_p)
-    return out
+        out[k] = np.clip(bends[k] + np.linalg.solve(hk, -gk)[6:], -3 * sigma_p, 3 * sigma_p)
+        variance[k] = np.diag(np.linalg.inv(hk))[6:]
+    return out, variance
+
+
+def fit_prior(bends: np.ndarray, variance: np.ndarray, ceiling: np.ndarray, min_submaps: int) -> np.ndarray:
+    """The drift priors' σ from the fleet itself (empirical Bayes): one EM update of a zero-mean Gaussian
+    prior's variance per parameter from a drift step's posteriors (``drift_step``), τ² = mean over the submaps
+    with a step of (posterior mean² + posterior variance), at most the configured ``ceiling`` σ; the ceiling
+    where fewer than ``min_submaps`` submaps had a step.
+
+    Why: one prior cannot serve every fleet. Wide enough for a monocular camera's drift (~1 % scale,
+    ~0.02°/m), it lets an exact mapper's submaps take 0.1-0.2 % of scale from noise and correlated residuals,
+    and their poses suffer (docs/METHOD_LOG.md, "A submap's monocular drift"). Pooled over the fleet, per
+    parameter (the fleet's sensor is what its submaps share): a fleet whose submaps carry no drift gives
+    estimates within their own uncertainty and each update shrinks τ (the estimates with it); a fleet whose
+    submaps drift keeps τ near their spread. One update per registration round (eight in all), not run to
+    convergence: with each submap's matches counted as ``fine_weight`` observations (``fusion.register``), the
+    marginal likelihood's optimum is no drift for the camera fleets too, and their poses lose what the drift
+    gains them (docs/METHOD_LOG.md, "The drift prior fitted to the fleet")."""
+    seen = np.isfinite(variance).all(axis=1)
+    if seen.sum() < min_submaps:
+        return ceiling
+    return np.minimum(np.sqrt(np.mean(bends[seen] ** 2 + variance[seen], axis=0)), ceiling)

@@ -52,7 +52,7 @@ import torch
 
 from fusion import drift, se3
 from fusion.config import FusionConfig
-from fusion.drift_fit import Matches, corrected_samples, drift_step
+from fusion.drift_fit import Matches, corrected_samples, drift_step, fit_prior, prior_sigmas
 from fusion.losses import gps_prior_loss, odometry_loss, pose_residual
 from fusion.matching import HeldPairs, correspondences
 from fusion.poses import PoseSet
@@ -182,6 +182,8 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     correct = gauss_newton and config.fine_drift  # each free submap's drift (fusion.drift) with its pose
     axes = np.array([drift.ahead_axis(s.mesh.vertices) for s in subs])
     bends = np.zeros((n_subs, drift.PARAMS))
+    ceiling = prior_sigmas(config)  # the drift priors: the configured σ, or (fine_drift_prior_fit) the fleet's own
+    sigma_p = ceiling
     local_cents = torch.tensor(np.stack(cents), device=dev)
     # how far a submap's farthest vertex lies from its centroid (m): a twist (t, ω) about the centroid moves
     # no point of it farther than |t| + |ω| × this
@@ -246,7 +248,9 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             # the drift given the poses, then the poses given the drift, on the same matches; not in the basin's
             # extra rounds (wider than fine_max_dist_m), whose matches still include the wrong walls
             if correct and not basin:
-                bends = drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, config)
+                bends, variance = drift_step(current, match, (src, dst), bends, pts, axes, local_cents, free_t, sigma_p)
+                if config.fine_drift_prior_fit:  # the next round's priors: the fleet's own (one EM update)
+                    sigma_p = fit_prior(bends, variance, ceiling, config.fine_drift_prior_min_submaps)
                 pts_t = torch.tensor(corrected_samples(pts, own, bends, axes), device=dev)
                 match = Matches(own_t[s_idx], own_t[d_idx], pts_t[s_idx], pts_t[d_idx], n_pair, w, sigma)
                 current, more = _gauss_newton(current, match, terms, gps, local_cents, free_t, colour,
@@ -282,7 +286,8 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
     if correct:
         metrics["drift_rms"] = {"scale": float(np.sqrt(np.mean(np.expm1(bends[free, 0]) ** 2))) if free.any() else 0.0,
                                 "bend_deg_per_m": float(np.degrees(np.sqrt(np.mean(bends[free, 1:] ** 2))))
-                                if free.any() else 0.0}
+                                if free.any() else 0.0,
+                                "prior_sigma": [float(np.expm1(sigma_p[0])), *np.degrees(sigma_p[1:]).tolist()]}
     return FineResult(list(final), metrics, drifts)
 
 

@@ -432,11 +432,12 @@ ROWS = ("gps", "init", "coarse", "concat", "concat_gps", "fused", "add_session",
 COMPONENTS: tuple[str, ...] = (
     "coarse_register=false",  # coarse session registration (fusion.coarse)
     "fine_register=false",  # joint point-to-plane registration of every submap (fusion.register)
-    "fine_solver=lbfgs",  # ... solved by L-BFGS (150 steps per round), not Levenberg-Marquardt
+    "fine_solver=lbfgs,fine_drift=false",  # ... solved by L-BFGS (150 steps per round), not Levenberg-Marquardt (no drift)
     "fine_own_overlap=false",  # ... a session's consecutive submaps not matched (trusted as far as they fit rigidly)
     "fine_own_overlap=false,fine_same_session=true",  # ... matched instead pooled with the others, unweighted
     "fine_own_overlap=false,fine_same_session=true,fine_same_session_ground=false",  # ... its upright surfaces only
-    "fine_drift=true",  # ... each submap's monocular scale and bend estimated with its pose (fusion.drift)
+    "fine_drift=false",  # ... no submap's monocular scale and bend estimated with its pose (fusion.drift)
+    "fine_drift_prior_fit=false",  # ... estimated under the fixed priors, not the ones fitted to the fleet
     "fine_noise_max_gain=1",  # ... the data's weight not raised where their residuals are tight
     "fine_polish_rounds=0",  # ... not run once more after the field alignment
     "fine_normal_balance=0",  # ... samples by area, not spread over the directions vertical faces face

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from fusion.drift import Drift, ahead_axis, corrected_input, deform, jacobian
+from fusion.drift_fit import fit_prior
 from fusion.register import fine_register
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
@@ -68,32 +69,60 @@ def _drifted_pair(truth: Drift) -> list[SubmapInput]:
             SubmapInput("b", "sb", 0, uploaded, Pose.identity(), Pose.identity(), sigma, pose_gps=Pose.identity())]
 
 
-def _misfit(subs: list[SubmapInput], drift_on: bool) -> tuple[float, Drift]:
-    """RMS distance (m) of b's vertices, corrected and posed as the registration found, from the truth."""
+def _misfit(subs: list[SubmapInput], drift_on: bool, fit_from: int | None = None) -> tuple[float, Drift]:
+    """RMS distance (m) of b's vertices, corrected and posed as the registration found, from the truth.
+    ``fit_from``: the drift priors fitted to the fleet from that many submaps (None: the fixed priors)."""
     start = [s.pose_init.matrix() for s in subs]
     gps = torch.tensor(np.stack([s.pose_gps.matrix() for s in subs]))
-    res = fine_register(subs, start, gps, tiny_config(fine_drift=drift_on))
+    fit = {"fine_drift_prior_fit": fit_from is not None, "fine_drift_prior_min_submaps": fit_from or 1}
+    res = fine_register(subs, start, gps, tiny_config(fine_drift=drift_on, **fit))
     found = res.drifts[1]
     v = found.apply(subs[1].mesh.vertices)
     posed = v @ res.poses[1][:3, :3].T + res.poses[1][:3, 3]
     return float(np.sqrt(((posed - subs[0].mesh.vertices) ** 2).sum(1).mean())), found
 
 
-def test_the_registration_undoes_a_submaps_scale_and_bend_that_a_rigid_pose_cannot() -> None:
+@pytest.mark.parametrize("fit_from", [None, 1])
+def test_the_registration_undoes_a_submaps_scale_and_bend_that_a_rigid_pose_cannot(fit_from: int | None) -> None:
     axis = ahead_axis(_block().vertices)
     truth = Drift(math.log(1.015), math.radians(0.02), math.radians(-0.02), axis)
     subs = _drifted_pair(truth)
     rigid, none = _misfit(subs, drift_on=False)
-    corrected, found = _misfit(subs, drift_on=True)
+    corrected, found = _misfit(subs, drift_on=True, fit_from=fit_from)
     assert none.is_identity()
     assert rigid > 0.1, rigid  # the best rigid fit leaves the far corners decimetres off
     assert corrected < 0.3 * rigid and corrected < 0.04, (corrected, rigid)
     assert found.log_scale == pytest.approx(-truth.log_scale, abs=0.003)
 
 
-def test_an_exact_submap_keeps_no_drift() -> None:
-    _, found = _misfit(_drifted_pair(Drift()), drift_on=True)
-    assert abs(math.expm1(found.log_scale)) < 0.002 and np.degrees(np.abs(found.params[1:])).max() < 0.003
+def test_an_exact_submap_keeps_no_drift_and_less_with_the_priors_fitted_to_the_fleet() -> None:
+    _, fixed = _misfit(_drifted_pair(Drift()), drift_on=True)
+    assert abs(math.expm1(fixed.log_scale)) < 0.002 and np.degrees(np.abs(fixed.params[1:])).max() < 0.003
+    _, fitted = _misfit(_drifted_pair(Drift()), drift_on=True, fit_from=1)
+    assert np.abs(fitted.params).max() < 0.5 * np.abs(fixed.params).max(), (fitted.params, fixed.params)
+
+
+def _em(truth: np.ndarray, noise: np.ndarray, ceiling: np.ndarray, updates: int, min_submaps: int = 8) -> np.ndarray:
+    """``fit_prior``'s updates on a Gaussian model of a drift step: each submap's estimate the truth plus noise of
+    σ ``noise``, its posterior under the current priors; returns the priors' σ after ``updates``."""
+    y = truth + np.random.default_rng(0).normal(scale=noise, size=truth.shape)
+    sigma = ceiling
+    for _ in range(updates):
+        shrink = sigma ** 2 / (sigma ** 2 + noise ** 2)
+        sigma = fit_prior(y * shrink, np.broadcast_to(shrink * noise ** 2, y.shape), ceiling, min_submaps)
+    return sigma
+
+
+def test_the_fitted_prior_shrinks_without_drift_and_keeps_a_fleets_real_spread() -> None:
+    ceiling = np.array([0.02, 7e-4, 7e-4])
+    noise = ceiling / 10  # each estimate's own uncertainty
+    none = _em(np.zeros((40, 3)), noise, ceiling, updates=8)
+    assert (none < 0.2 * ceiling).all(), none  # estimates within their own noise: the prior closes on them
+    spread = ceiling / 2
+    real = _em(np.random.default_rng(1).normal(size=(40, 3)) * spread, noise, ceiling, updates=8)
+    np.testing.assert_allclose(real, spread, rtol=0.3)  # a fleet that drifts keeps its spread
+    few = _em(np.zeros((5, 3)), noise, ceiling, updates=8)
+    np.testing.assert_array_equal(few, ceiling)  # fewer submaps than the fit needs: the configured priors
 
 
 def test_the_drift_needs_the_gauss_newton_solver() -> None:

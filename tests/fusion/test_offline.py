@@ -69,7 +69,9 @@ def test_fuse_directory_writes_tiles_and_poses(uploads: Path, tmp_path: Path) ->
     assert len(poses) == n_submaps
     assert {frozenset(p) for p in poses} == {frozenset({"session_id", "seq", "id", "pose_gps", "pose_refined",
                                                         "drift_refined"})}
-    assert all(p["pose_refined"] is not None and p["drift_refined"] is None for p in poses)  # fine_drift off
+    assert all(p["pose_refined"] is not None for p in poses)
+    found = [p["drift_refined"] for p in poses if p["drift_refined"] is not None]  # fine_drift: on by default
+    assert found and all(set(d) == {"scale", "bend_yaw_rad_per_m", "bend_pitch_rad_per_m", "axis"} for d in found)
     assert any(not np.allclose(p["pose_gps"]["t"], p["pose_refined"]["t"]) for p in poses)
     assert events and events[-1].stage.startswith("tile ")
 
