@@ -158,13 +158,10 @@ class FusionConfig:
     fine_drift_scale_sigma: float = 0.02
     fine_drift_bend_deg_per_m: float = 0.04
     # ... as ceilings: the priors' σ fitted to the fleet's own drift, one EM update per round (empirical Bayes,
-    # fusion.drift_fit.fit_prior), so that submaps that carry no drift keep almost none. Needs this many free
-    # submaps with a drift step, else the ceilings hold. With the fixed priors exact submaps took 0.1-0.2 %
-    # of scale and their poses suffered (exact 1, twenty-second session: 0.074 -> 0.110 m), so the drift was
-    # off by default. Fitted, 3x3 bench, GPS 1.5 m, same data, off -> on (geo F / sem F / abs geo F / pose m /
-    # deg): camera 0 0.772/0.370/0.729/0.469/0.50 -> 0.799/0.372/0.778/0.417/0.42, exact 0
-    # 0.984/0.824/0.729/0.083/0.08 -> 0.984/0.822/0.794/0.095/0.10 (docs/METHOD_LOG.md, "The drift prior
-    # fitted to the fleet")
+    # fusion.drift_fit.fit_prior), so submaps that carry no drift keep almost none (with the fixed priors exact
+    # submaps took 0.1-0.2 % of scale and lost pose; on by default since: camera 0 geo F 0.772 -> 0.799, pose
+    # 0.469 -> 0.417 m, exact 0 0.984 -> 0.984, 0.083 -> 0.095 m; docs/METHOD_LOG.md, "The drift prior fitted to
+    # the fleet"). Needs this many free submaps with a drift step, else the ceilings hold
     fine_drift_prior_fit: bool = True
     fine_drift_prior_min_submaps: int = 8
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
