@@ -122,6 +122,39 @@ def test_variants_are_fused_rows_with_their_overrides_on_the_same_data(monkeypat
     assert "sdf_robust_m=0.1,consensus=true" in table and "0.800" in table  # the third row's geo F
 
 
+def _rows() -> dict[str, dict[str, Any]]:
+    """A fused row and both baseline rows; of the baselines GICP has the better F, ICP the better rotation."""
+    return {"fused": {"geo_f": 0.8, "sem_f": 0.4, "pose_trans_m": 0.4, "pose_rot_deg": 0.5, "transient_survival": 0.02},
+            "icp": {"geo_f": 0.5, "sem_f": 0.2, "pose_trans_m": 1.0, "pose_rot_deg": 0.45},
+            "gicp": {"geo_f": 0.6, "sem_f": 0.25, "pose_trans_m": 0.9, "pose_rot_deg": 0.6}}
+
+
+def test_a_camera_fleet_is_judged_by_its_miss_rates_against_the_best_baseline_of_the_run() -> None:
+    versus = bench_region.against_baseline(_rows(), "camera")
+    assert versus is not None
+    assert versus["baseline_geo_f"] == 0.6 and versus["baseline_pose_rot_deg"] == 0.45  # per figure the best
+    assert versus["geo_f_miss_ratio"] == pytest.approx(0.2 / 0.4)
+    assert versus["sem_f_miss_ratio"] == pytest.approx(0.6 / 0.75)
+    assert versus["checks"] == {"geo_f_miss_ratio": True, "sem_f_miss_ratio": False, "pose_trans_m": True,
+                                "pose_rot_deg": False, "transient_survival": True}
+    report = {"rows": _rows(), "against_baseline": versus, "sensor": "camera", "submaps": 1, "sessions": 1, "tiles": 1,
+              "tile_size_m": 64.0, "preset": "tiny", "seed": 0, "simulate_s": 0.0, "memory": {"peak_rss_mib": 1.0}}
+    table = bench_region.format_region_table(report)
+    assert "sem_f          0.400 vs 0.250, miss ratio 0.80x MISSED" in table
+    assert "target sem_f" not in table  # the exact fleet's absolute targets are not a camera fleet's
+
+
+def test_an_exact_fleet_needs_the_baselines_f_and_its_poses_within_the_slack() -> None:
+    rows = _rows()
+    rows["fused"] |= {"geo_f": 0.6, "sem_f": 0.24, "pose_trans_m": 0.92, "pose_rot_deg": 0.49}
+    versus = bench_region.against_baseline(rows, "exact")
+    assert versus is not None
+    assert versus["checks"] == {"geo_f": True, "sem_f": False, "pose_trans_m": True, "pose_rot_deg": True}
+    rows["fused"]["pose_trans_m"] = 0.94  # 0.04 m over the best baseline's
+    assert bench_region.against_baseline(rows, "exact")["checks"]["pose_trans_m"] is False  # type: ignore[index]
+    assert bench_region.against_baseline({"fused": rows["fused"]}, "exact") is None  # no baseline row: nothing to say
+
+
 def test_a_bad_variant_fails_before_anything_is_simulated(monkeypatch: pytest.MonkeyPatch) -> None:
     from fusion.eval import cli
 
