@@ -466,7 +466,7 @@ def format_region_table(report: dict[str, Any]) -> str:
         if camera:
             lines.append(f"    {'single-session':<14} {fmt(fused.get('transient_survival'), '.1%')} "
                          f"{mark[versus['checks']['transient_survival']]}")
-    if report.get("sensor", "exact") == "exact":  # absolute targets: the exact fleet's (issue 10)
+    if fused and report.get("sensor", "exact") == "exact":  # absolute targets: the exact fleet's (issue 10)
         for key, target in TARGETS.items():
             v = fused.get(key)
             ok = None if v is None else (v >= target if key in ("geo_f", "sem_f") else v <= target)

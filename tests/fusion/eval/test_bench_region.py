@@ -153,6 +153,11 @@ def test_an_exact_fleet_needs_the_baselines_f_and_its_poses_within_the_slack() -
     rows["fused"]["pose_trans_m"] = 0.94  # 0.04 m over the best baseline's
     assert bench_region.against_baseline(rows, "exact")["checks"]["pose_trans_m"] is False  # type: ignore[index]
     assert bench_region.against_baseline({"fused": rows["fused"]}, "exact") is None  # no baseline row: nothing to say
+    report = {"rows": rows, "against_baseline": None, "sensor": "exact", "submaps": 1, "sessions": 1, "tiles": 1,
+              "tile_size_m": 64.0, "preset": "tiny", "seed": 0, "simulate_s": 0.0, "memory": {"peak_rss_mib": 1.0}}
+    assert "target sem_f          0.240 (target 0.8) MISSED" in bench_region.format_region_table(report)
+    report["rows"] = {"gicp": rows["gicp"]}  # no fused row (e.g. --rows add_sessions): no targets to judge
+    assert "target" not in bench_region.format_region_table(report)
 
 
 def test_a_bad_variant_fails_before_anything_is_simulated(monkeypatch: pytest.MonkeyPatch) -> None:
