@@ -56,8 +56,8 @@ POSE_SLACK = (0.03, 0.05)
 
 def against_baseline(rows: dict[str, dict[str, Any]], sensor: str, row: str = "fused") -> dict[str, Any] | None:
     """``row`` against the best of the baseline rows (``BASELINE_ROWS``; per figure the best of them) of the same
-    run: the miss-rate ratios (1 - F of ``row`` over the baseline's), the pose differences and, per condition
-    of the sensor's fleet, whether it holds (``checks``). None without a baseline row or ``row``."""
+    run: the best baseline figures (``baseline_*``), the miss-rate ratios (1 - F of ``row`` over the baseline's)
+    and, per condition of the sensor's fleet, whether it holds (``checks``). None without a baseline row or ``row``."""
     fused, base = rows.get(row), [rows[n] for n in BASELINE_ROWS if rows.get(n)]
     if not fused or not base:
         return None
