@@ -32,13 +32,22 @@ import json
 import operator
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 from fusion.eval import metrics, scoring
-from fusion.eval.bench_context import TILE, TILE_SIZE, BenchContext, concatenated, fmt, peak_memory, prepare
+from fusion.eval.bench_context import (
+    TILE,
+    TILE_SIZE,
+    BenchContext,
+    concatenated,
+    fmt,
+    peak_memory,
+    prepare,
+    sensor_text,
+)
 from fusion.eval.scoring import ABS_KEYS, Gauge
 from fusion.eval.synth.simulate import simulate
 from fusion.offline import LoadedSubmap, fuse_tiles
@@ -175,7 +184,7 @@ def format_table(report: dict[str, Any]) -> str:
                  (f", {mem['peak_gpu_mib']:.0f} MiB GPU" if mem["peak_gpu_mib"] is not None else ""))
     size = report.get("tile_size_m", TILE_SIZE)
     lines.append(f"submaps {report['submaps']} ({report['home_submaps']} homed in tile {TILE}, {size:g} m), sessions "
-                 f"{report['sessions']}, sensor {report.get('sensor', 'exact')}, preset {report['preset']}, seed {report['seed']}, simulate {report['simulate_s']:.1f} s")
+                 f"{report['sessions']}, sensor {sensor_text(report)}, preset {report['preset']}, seed {report['seed']}, simulate {report['simulate_s']:.1f} s")
     for name, t in report["targets"].items():
         mark = {True: "ok", False: "MISSED", None: "n/a"}[t["met"]]
         lines.append(f"  target {name:<24} {fmt(t['value'])} (target {t['target']}) {mark}")
@@ -185,8 +194,10 @@ def format_table(report: dict[str, Any]) -> str:
 def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5), seed: int = 0,
               json_path: str | Path | None = None, rows: list[str] | None = None, config: Any = None,
               out: Callable[[str], None] = print, tile_size: float | None = None,
-              vertex_noise_m: float | None = None, sensor: str = "camera") -> dict[str, Any]:
-    """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg), ``sensor`` camera or exact),
+              vertex_noise_m: float | None = None, sensor: str = "camera", camera: Sequence[str] = (),
+              world: Sequence[str] = ()) -> dict[str, Any]:
+    """Simulate ``sessions`` sessions (world ``seed``, GPS noise (σ m, σ deg), ``sensor`` camera or exact,
+    ``camera`` / ``world`` overrides of the camera model and the world: ``fusion.eval.synth.simulate``),
     fuse tile (0, 0) with the ``preset`` config, evaluate the ``rows`` (default: all of ``ROWS``; ``gps``,
     ``concat``, ``concat_gps`` need no fusion), print the table, return
     (and optionally write to ``json_path``) every figure: the one-tile bench (``fleetmap bench --tiles
@@ -200,15 +211,16 @@ def run_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[float, fl
     size = float(tile_size or (128.0 if preset == "paper" else TILE_SIZE))
     with tempfile.TemporaryDirectory(prefix="fleetmap-bench-") as tmp:
         t0 = time.perf_counter()
-        world = WorldParams(core_min=(0.0, 0.0), core_max=(size, size))
+        world_params = WorldParams(core_min=(0.0, 0.0), core_max=(size, size))
         fleet = FleetParams(vertex_noise_m=vertex_noise_m) if vertex_noise_m is not None else None
-        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet,
-                 sensor=sensor)
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world_params,
+                 fleet_params=fleet, sensor=sensor, camera=camera, world=world)
         sim_s = time.perf_counter() - t0
         ctx = prepare(Path(tmp), cfg, tile_size=size)
     for name in rows or list(ROWS):
         ctx.rows[name] = ROWS[name](ctx)
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "sensor": sensor,
+              "camera": list(camera), "world": list(world),
               "vertex_noise_m": vertex_noise_m if vertex_noise_m is not None else FleetParams().vertex_noise_m, "simulate_s": sim_s,
               "submaps": len(ctx.submaps), "home_submaps": len(ctx.home), "tile": list(TILE), "tile_size_m": size, "d_m": D,
               "rows": ctx.rows, "memory": peak_memory(), "config": cfg.to_dict()}

@@ -93,3 +93,9 @@ def peak_memory() -> dict[str, float | None]:
 def fmt(v: Any, spec: str = ".3f") -> str:
     """A table cell: ``-`` for a missing figure."""
     return "-" if v is None else format(v, spec)
+
+
+def sensor_text(report: dict[str, Any]) -> str:
+    """The report's sensor and its camera / world overrides, for a table's footer."""
+    extra = [f"{flag} {item}" for flag in ("camera", "world") for item in report.get(flag, [])]
+    return " ".join([report.get("sensor", "exact"), *(f"(--{e})" for e in extra)])

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from fusion.config import FusionConfig
 from fusion.drift import Drift, corrected_input
 from fusion.eval import scoring
-from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare
+from fusion.eval.bench_context import BenchContext, concatenated, fmt, peak_memory, prepare, sensor_text
 from fusion.field import moved_state
 from fusion.offline import LoadedSubmap, fuse_tiles, reconstruct_tiles
 from fusion.placement import motion_report, quiet_tiles, settle_realignment, tile_carry
@@ -433,7 +433,7 @@ def format_region_table(report: dict[str, Any]) -> str:
             lines.append(f"  {name} alignment: {a['iterations']} steps over {a['num_tiles']} tiles, "
                          f"{a['num_submaps']} submaps, {a['duration_s']:.0f} s")
     lines.append(f"submaps {report['submaps']}, sessions {report['sessions']}, tiles {report['tiles']}×{report['tiles']} "
-                 f"of {report['tile_size_m']:g} m, sensor {report.get('sensor', 'exact')}, preset {report['preset']}, seed {report['seed']}, "
+                 f"of {report['tile_size_m']:g} m, sensor {sensor_text(report)}, preset {report['preset']}, seed {report['seed']}, "
                  f"simulate {report['simulate_s']:.0f} s, peak RSS {report['memory']['peak_rss_mib']:.0f} MiB")
     fused = report["rows"].get("fused", {})
     for name in ("add_session", "add_sessions"):
@@ -522,8 +522,10 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
                      seed: int = 0, json_path: str | Path | None = None, rows: list[str] | None = None,
                      config: Any = None, out: Callable[[str], None] = print, tile_size: float | None = None,
                      vertex_noise_m: float | None = None, tiles: int = 3, sensor: str = "camera",
-                     baseline_config: Any = None, variants: list[str] | None = None) -> dict[str, Any]:
-    """Simulate ``sessions`` sessions (``sensor`` camera or exact) through a ``tiles``×``tiles`` core of
+                     baseline_config: Any = None, variants: list[str] | None = None, camera: Sequence[str] = (),
+                     world: Sequence[str] = ()) -> dict[str, Any]:
+    """Simulate ``sessions`` sessions (``sensor`` camera or exact; ``camera`` / ``world``: overrides of the camera
+    model and the world, ``fusion.eval.synth.simulate``) through a ``tiles``×``tiles`` core of
     ``tile_size`` m tiles, fuse the core tiles (rows: gps, fused; oracle on request: it doubles the time;
     concat / concat_gps: the uploads concatenated, no fusion; icp / gicp: the classical baseline with
     ``baseline_config``), print the table, return (and optionally write to ``json_path``) every figure.
@@ -542,10 +544,10 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
     rows = rows or ["gps", "fused"]
     with tempfile.TemporaryDirectory(prefix="fleetmap-bench-region-") as tmp:
         t0 = time.perf_counter()
-        world = WorldParams(core_min=(0.0, 0.0), core_max=(tiles * size, tiles * size))
+        world_params = WorldParams(core_min=(0.0, 0.0), core_max=(tiles * size, tiles * size))
         fleet = FleetParams(vertex_noise_m=vertex_noise_m) if vertex_noise_m is not None else None
-        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world, fleet_params=fleet,
-                 sensor=sensor)
+        simulate(tmp, seed=seed, sessions=sessions, gps_noise=gps_noise, world_params=world_params,
+                 fleet_params=fleet, sensor=sensor, camera=camera, world=world)
         sim_s = time.perf_counter() - t0
         ctx = prepare(Path(tmp), cfg, tile_size=size, region=((0.0, 0.0), (tiles * size, tiles * size)))
     keys = [(i, j) for i in range(tiles) for j in range(tiles)]
@@ -574,7 +576,7 @@ def run_region_bench(preset: str = "cpu", sessions: int = 5, gps_noise: tuple[fl
         report_rows[f"{name}, no detail"] = row.pop("without_detail") | {
             k: v for k, v in row.items() if k.startswith("pose_")}
     report = {"preset": preset, "seed": seed, "sessions": sessions, "gps_noise": list(gps_noise), "sensor": sensor,
-              "tiles": tiles,
+              "camera": list(camera), "world": list(world), "tiles": tiles,
               "tile_size_m": size, "simulate_s": sim_s, "submaps": len(ctx.submaps), "rows": report_rows,
               "memory": peak_memory(), "config": cfg.to_dict(),
               "against_baseline": against_baseline(report_rows, sensor)}

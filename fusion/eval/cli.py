@@ -47,8 +47,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from fusion.eval.synth.fleet import FleetParams
     from fusion.eval.synth.simulate import simulate
 
+    if (error := _fleet_overrides_error(args)) is not None:
+        return _fail(error)
     records = simulate(args.out, seed=args.seed, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg),
-                       fleet_params=FleetParams(vertex_noise_m=args.vertex_noise_m), sensor=args.sensor)
+                       fleet_params=FleetParams(vertex_noise_m=args.vertex_noise_m), sensor=args.sensor,
+                       camera=args.camera, world=args.world)
     print(f"wrote {len(records)} submaps of {args.sessions} sessions ({args.sensor} sensor) to {args.out} "
           "(ground truth in ground_truth/)")
     return 0
@@ -103,6 +106,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from fusion.eval.perf import run as run_throughput
 
         return run_throughput(args)
+    if (error := _fleet_overrides_error(args)) is not None:
+        return _fail(error)
     region = args.tiles > 1
     components = region and args.ablation == "components"  # the multi-tile ablation: variant rows below
     if components:
@@ -143,11 +148,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         run_region_bench(args.preset, args.sessions, gps_noise, args.seed, args.json, rows, config, print,
                          args.tile_size, args.vertex_noise_m, args.tiles, args.sensor, baseline_config,
-                         args.variant)
+                         args.variant, args.camera, args.world)
         return 0
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=gps_noise, seed=args.seed,
               json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m,
-              config=config, sensor=args.sensor)
+              config=config, sensor=args.sensor, camera=args.camera, world=args.world)
     return 0
 
 
@@ -172,6 +177,29 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gps-noise-deg", type=float, default=1.5, help="GPS rotation sigma, degrees (default 1.5)")
     p.add_argument("--vertex-noise-m", type=float, default=0.025,
                    help="submap vertex noise sigma, metres (default 0.025) of the exact sensor (--sensor exact)")
+    p.add_argument("--camera", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a field of the camera model (repeatable; fusion.eval.synth.camera.CameraSensor), "
+                        "e.g. --camera depth_sigma_10m=0.3 --camera thin_miss=pole:0.3,traffic_sign:0.3")
+    p.add_argument("--world", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a field of the simulated world (repeatable; fusion.eval.synth.world.WorldParams), "
+                        "e.g. --world max_grade=0.1 --world junction=t --world class_mix=vehicle:2")
+
+
+def _fleet_overrides_error(args: argparse.Namespace) -> str | None:
+    """The one-line error of a bad ``--camera`` / ``--world`` override (None: they apply), checked before
+    anything is simulated."""
+    from fusion.eval.synth.camera import sensor_model
+    from fusion.eval.synth.world import WorldParams, world_overrides
+
+    try:
+        sensor_model(args.sensor, args.camera)
+    except ValueError as exc:
+        return f"--camera {exc}"
+    try:
+        world_overrides(WorldParams(), args.world)
+    except ValueError as exc:
+        return f"--world {exc}"
+    return None
 
 
 def register(subparsers: Any) -> None:

@@ -106,6 +106,8 @@ class BenchHarness:
                 gps_noise=(p["gps_sigma_m"], p["gps_sigma_deg"]),
                 fleet_params=FleetParams(submap_length=p["submap_length"], vertex_noise_m=p["vertex_noise_m"]),
                 sensor=p.get("sensor", "camera"),
+                camera=p.get("camera", ()),
+                world=p.get("world", ()),
             )
             upload = sum(f.stat().st_size for f in Path(tmp).glob("*.ply"))
             upload += sum(f.stat().st_size for f in Path(tmp).glob("*.json"))
@@ -191,5 +193,7 @@ def bench_harness(args: argparse.Namespace) -> BenchHarness:
         "submap_length": FleetParams().submap_length,
         "vertex_noise_m": getattr(args, "vertex_noise_m", FleetParams().vertex_noise_m),
         "sensor": getattr(args, "sensor", "camera"),
+        "camera": getattr(args, "camera", []),
+        "world": getattr(args, "world", []),
     }
     return BenchHarness(FusionConfig.preset(getattr(args, "preset", "cpu")), defaults)

@@ -27,12 +27,14 @@ the submap starts, x forward, z up), metres and degrees.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
+from fusion.config import with_overrides
 from fusion.eval.synth import shapes
 from fusion.eval.synth.visibility import in_frustum
 from fusion.labels import LABEL_BY_NAME
@@ -103,12 +105,15 @@ class CameraSensor:
 SENSORS = ("camera", "exact")
 
 
-def sensor_model(name: str) -> CameraSensor | None:
-    """The sensor model called ``name``: ``camera`` (the defaults above) or ``exact`` (None: exact crops of
-    the world with the fleet's white vertex and label noise, ``FleetParams``)."""
+def sensor_model(name: str, overrides: Sequence[str] = ()) -> CameraSensor | None:
+    """The sensor model called ``name``: ``camera`` (the defaults above, with ``KEY=VALUE`` ``overrides`` of
+    its fields: ``--camera``) or ``exact`` (None: exact crops of the world with the fleet's white vertex and
+    label noise, ``FleetParams``; no overrides). Raises ``ValueError`` on an unknown name or override."""
     if name == "camera":
-        return CameraSensor()
+        return with_overrides(CameraSensor(), list(overrides))
     if name == "exact":
+        if overrides:
+            raise ValueError("camera overrides need the camera sensor (--sensor camera)")
         return None
     raise ValueError(f"unknown sensor {name!r} (known: {', '.join(SENSORS)})")
 

@@ -15,17 +15,19 @@ Vehicles upload only the first two; the ground truth is for evaluation.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import plyfile
 
+from fusion.config import with_overrides
 from fusion.eval.synth import shapes
 from fusion.eval.synth.camera import sensor_model
 from fusion.eval.synth.fleet import FleetParams, SubmapRecord
 from fusion.eval.synth.submap import drive
-from fusion.eval.synth.world import World, WorldParams
+from fusion.eval.synth.world import World, WorldParams, world_overrides
 from fusion.meshio import write_submap_ply
 from fusion.types import Pose
 
@@ -94,31 +96,38 @@ def _read_gt_ply(path: Path, tag_name: str) -> tuple[np.ndarray, ...]:
 
 def simulate(out_dir: str | Path, seed: int = 0, sessions: int = 5, gps_noise: tuple[float, float] = (1.5, 1.5),
              world_params: WorldParams | None = None, fleet_params: FleetParams | None = None,
-             sensor: str | None = None) -> list[SubmapRecord]:
+             sensor: str | None = None, camera: Sequence[str] = (), world: Sequence[str] = ()
+             ) -> list[SubmapRecord]:
     """Generate a world (``seed``), drive ``sessions`` sessions through it and write what they upload
     (``NAME.ply`` + ``NAME.json``) plus ``ground_truth/``. ``gps_noise``: (σ metres, σ degrees).
 
     ``world_params``/``fleet_params`` override the defaults (their seed/sessions/GPS fields are set
     from the arguments). ``sensor``: ``camera`` or ``exact`` (``fusion.eval.synth.camera.sensor_model``)
-    sets ``fleet_params.camera``; None keeps it (the default fleet: exact). Returns the submap records
-    (with their truth).
+    sets ``fleet_params.camera``; None keeps it (the default fleet: exact). ``camera`` / ``world``: ``KEY=VALUE``
+    overrides of the camera model's fields (``CameraSensor``; with ``sensor`` camera) and of the world's
+    (``WorldParams``; ``seed`` and the core are the caller's: rejected). Raises ``ValueError`` on a bad
+    override before anything is written. Returns the submap records (with their truth).
     """
     out = Path(out_dir)
-    wp = world_params or WorldParams()
+    wp = world_overrides(world_params or WorldParams(), world)
     wp.seed = seed
     fp = fleet_params or FleetParams()
     fp.sessions, fp.gps_sigma_m, fp.gps_sigma_deg = sessions, float(gps_noise[0]), float(gps_noise[1])
     if sensor is not None:
-        fp.camera = sensor_model(sensor)
-    world = World(wp)
-    records = drive(world, fp, np.random.default_rng(seed + 7919))
+        fp.camera = sensor_model(sensor, camera)
+    elif camera:
+        if fp.camera is None:
+            raise ValueError("camera overrides need the camera sensor (--sensor camera)")
+        fp.camera = with_overrides(fp.camera, list(camera))
+    scene = World(wp)
+    records = drive(scene, fp, np.random.default_rng(seed + 7919))
     out.mkdir(parents=True, exist_ok=True)
     for r in records:
         (out / f"{r.name}.ply").write_bytes(write_submap_ply(r.mesh))
         (out / f"{r.name}.json").write_text(json.dumps(r.meta(), indent=1))
     gt = out / "ground_truth"
     gt.mkdir(exist_ok=True)
-    (sv, sf, sl, so, spart), (tv, tf, tl, to, tsess) = _assemble(world, records)
+    (sv, sf, sl, so, spart), (tv, tf, tl, to, tsess) = _assemble(scene, records)
     _write_gt_ply(gt / "world.ply", sv, sf, sl, so, "part", spart)
     _write_gt_ply(gt / "transients.ply", tv, tf, tl, to, "session", tsess)
     poses = [{"name": r.name, "session_id": r.session_id, "session": r.session, "seq": r.seq, "pose_true": r.pose_true.to_json(),
@@ -126,8 +135,8 @@ def simulate(out_dir: str | Path, seed: int = 0, sessions: int = 5, gps_noise: t
     sessions_ids = sorted({r.session_id for r in records})
     (gt / "poses.json").write_text(json.dumps({"submaps": poses, "sessions": sessions_ids}, indent=1))
     info = {"world": asdict(wp), "fleet": asdict(fp), "sensor": "exact" if fp.camera is None else "camera",
-            "sidewalk_width_m": world.sidewalk_width,
-            "roads": len(world.roads), "submaps": len(records)}
+            "sidewalk_width_m": scene.sidewalk_width,
+            "roads": len(scene.roads), "submaps": len(records)}
     (gt / "world.json").write_text(json.dumps(info, indent=1))
     return records
 

@@ -9,11 +9,13 @@ junction types, sidewalk widths and the class mix vary between seeds.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fusion.config import with_overrides
 from fusion.eval.synth import placement, shapes
 from fusion.eval.synth.shapes import Part
 from fusion.labels import LABEL_BY_NAME
@@ -46,7 +48,7 @@ class WorldParams:
     kerb_height: float = 0.15
     max_grade: float = 0.05
     max_curvature: float = 1.0 / 60.0
-    junction: str = "random"  # "cross" | "t" | "random"
+    junction: str = "random"  # JUNCTIONS: "cross" | "t" | "random"
     n_roads: int | None = None  # None: 2 per 64 m × 64 m of core, at least 2
     class_mix: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_CLASS_MIX))
     max_edge: float = 0.7
@@ -59,6 +61,24 @@ class WorldParams:
         lo = np.asarray(self.core_min, float) - self.margin
         hi = np.asarray(self.core_max, float) + self.margin
         return lo, hi
+
+
+JUNCTIONS = ("cross", "t", "random")
+CALLERS_FIELDS = ("seed", "core_min", "core_max")  # set by --seed and the bench's tiles, not by --world
+
+
+def world_overrides(params: WorldParams, items: Sequence[str]) -> WorldParams:
+    """``params`` with ``KEY=VALUE`` overrides of its fields (``--world``: e.g. ``max_grade=0.1``,
+    ``max_curvature=0.033``, ``junction=t``, ``class_mix=vehicle:2,vegetation:0.5``). Raises ``ValueError``
+    on an unknown field, a bad value, or one of ``CALLERS_FIELDS``."""
+    taken = [i for i in items if i.partition("=")[0].strip() in CALLERS_FIELDS]
+    if taken:
+        raise ValueError(f"{taken[0]!r}: {', '.join(CALLERS_FIELDS)} are set by the command (--seed, --tiles, "
+                         "--tile-size), not by --world")
+    out = with_overrides(params, list(items))
+    if out.junction not in JUNCTIONS:
+        raise ValueError(f"junction={out.junction!r}: expected one of {', '.join(JUNCTIONS)}")
+    return out
 
 
 class World:

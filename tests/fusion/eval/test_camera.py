@@ -332,3 +332,59 @@ def test_default_camera_submaps_are_noisier_than_exact_ones_but_on_the_surface(c
 
     exact, camera = median_distance("exact"), median_distance("camera")
     assert exact < camera < 0.2
+
+
+# -- overrides of the camera model and the world (--camera, --world) --------------------------------
+def test_camera_and_world_overrides_parse_each_fields_type() -> None:
+    from fusion.eval.synth.world import world_overrides
+
+    cam = cm.sensor_model("camera", ["depth_sigma_10m=0.3", "thin_miss=pole:0.2, traffic_sign:0.4",
+                                     "confusion=road:sidewalk:0.05"])
+    assert isinstance(cam, CameraSensor) and cam.depth_sigma_10m == 0.3 and cam.hfov_deg == CameraSensor().hfov_deg
+    assert cam.thin_miss == (("pole", 0.2), ("traffic_sign", 0.4)) and cam.confusion == (("road", "sidewalk", 0.05),)
+    world = world_overrides(WorldParams(), ["max_grade=0.1", "junction=t", "n_roads=3", "marking_dash=2,4",
+                                            "class_mix=vehicle:2,vegetation:0.5"])
+    assert (world.max_grade, world.junction, world.n_roads, world.marking_dash) == (0.1, "t", 3, (2.0, 4.0))
+    assert world.class_mix["vehicle"] == 2.0 and world.class_mix["vegetation"] == 0.5
+    assert world.class_mix["building"] == 1.0  # a class-mix override merges into the default mix
+    assert world_overrides(WorldParams(), ["n_roads=none"]).n_roads is None
+    for bad, message in ((["range=20"], "expected KEY=VALUE with KEY a CameraSensor field"),
+                         (["thin_miss=polee:0.2"], "is not a valid"), (["hfov_deg=wide"], "is not a valid float")):
+        with pytest.raises(ValueError, match=message):
+            cm.sensor_model("camera", bad)
+    with pytest.raises(ValueError, match="need the camera sensor"):
+        cm.sensor_model("exact", ["range_m=30"])
+    for bad, message in ((["seed=4"], "set by the command"), (["core_max=10,10"], "set by the command"),
+                         (["junction=roundabout"], "expected one of cross, t, random"),
+                         (["marking_dash=3"], "is not a valid tuple"), (["class_mix=car:2"], "is not a valid")):
+        with pytest.raises(ValueError, match=message):
+            world_overrides(WorldParams(), bad)
+
+
+def test_overrides_reach_the_simulated_fleet_and_world(tmp_path) -> None:
+    """A camera that maps only 8 m ahead uploads far less surface than the default's 20 m; the world override
+    is what the ground truth records; both are recorded with it."""
+    def area(out, **kw) -> float:
+        records = simulate(out, seed=3, sessions=2, world_params=WorldParams(**TINY_WORLD),
+                           fleet_params=FleetParams(**TINY_FLEET), sensor="camera", **kw)
+        return float(sum(_areas(r.mesh.vertices, r.mesh.faces).sum() for r in records))
+
+    default, short = area(tmp_path / "a"), area(tmp_path / "b", camera=["range_m=8"], world=["max_grade=0.08"])
+    assert short < 0.6 * default
+    info = load_ground_truth(tmp_path / "b").info
+    assert info["fleet"]["camera"]["range_m"] == 8.0 and info["world"]["max_grade"] == 0.08
+    assert load_ground_truth(tmp_path / "a").info["fleet"]["camera"]["range_m"] == CameraSensor().range_m
+
+
+def test_a_bad_override_is_one_line_on_the_command_line_and_writes_nothing(tmp_path, capsys) -> None:
+    from fusion.eval import cli
+
+    for argv, message in ((["--camera", "depth=0.3"], "fleetmap: error: --camera 'depth=0.3': expected KEY=VALUE"),
+                          (["--sensor", "exact", "--camera", "range_m=30"], "fleetmap: error: --camera camera overrides need"),
+                          (["--world", "junction=y"], "fleetmap: error: --world junction='y': expected one of")):
+        assert cli.main(["simulate", str(tmp_path / "out"), *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(message) and err.count("\n") == 1, err
+        assert not (tmp_path / "out").exists()
+        assert cli.main(["bench", "--tiles", "2", *argv]) == 2
+        assert capsys.readouterr().err.startswith(message)
