@@ -31,6 +31,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -277,6 +278,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="world and fleet seed")
     parser.add_argument("--sensor", choices=("camera", "exact"), default="camera",
                         help="the fleet's sensor model (fusion.eval.synth.camera; default camera)")
+    parser.add_argument("--camera", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a field of the camera model (repeatable; as for fleetmap bench)")
     parser.add_argument("--out", type=Path, default=Path("./fleetmap-demo"), help="output folder")
     parser.add_argument(
         "--preset", default="cpu", choices=PRESETS, help="fusion preset: cpu, paper (GPU) or tiny (smoke test)"
@@ -298,6 +301,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--port {args.port} is not a TCP port")
     if args.workers and not args.broker:
         parser.error("--workers needs --broker (the embedded worker is one process)")
+    from fusion.eval.synth.camera import sensor_model
+
+    try:
+        sensor_model(args.sensor, args.camera)
+    except ValueError as exc:
+        parser.error(f"--camera {exc}")
     sessions = args.sessions or DEFAULT_SESSIONS[args.world]
 
     out = args.out.resolve()
@@ -309,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         print(f"1/6 simulating {sessions} sessions ({args.world} world, seed {args.seed}, {args.sensor} sensor) ...",
               flush=True)
-        records, truth = _simulate(out / "sim", args.seed, sessions, args.sensor, WORLDS[args.world])
+        records, truth = _simulate(out / "sim", args.seed, sessions, args.sensor, WORLDS[args.world], args.camera)
         print(f"    {len(records)} submaps, {sum(len(r.mesh.faces) for r in records):,} faces")
         fusing = f"{len(workers)} Celery workers on {args.broker}" if workers else "embedded worker"
         print(f"2/6 starting the service (fleetmap serve + {fusing}) ...", flush=True)
@@ -348,13 +357,15 @@ def _positive(text: str) -> int:
 
 
 def _simulate(sim: Path, seed: int, sessions: int, sensor: str = "camera",
-              core: tuple[tuple[float, float], tuple[float, float]] = DEMO_CORE) -> tuple[list[Any], Any]:
-    """The simulated fleet's uploads (written under ``sim``) and its ground truth, driven through ``core``."""
+              core: tuple[tuple[float, float], tuple[float, float]] = DEMO_CORE,
+              camera: Sequence[str] = ()) -> tuple[list[Any], Any]:
+    """The simulated fleet's uploads (written under ``sim``) and its ground truth, driven through ``core``
+    (``camera``: overrides of the camera model, ``--camera``)."""
     from fusion.eval.synth.simulate import load_ground_truth, simulate
     from fusion.eval.synth.world import WorldParams
 
     world = WorldParams(core_min=core[0], core_max=core[1])
-    records = simulate(sim, seed=seed, sessions=sessions, world_params=world, sensor=sensor)
+    records = simulate(sim, seed=seed, sessions=sessions, world_params=world, sensor=sensor, camera=camera)
     return records, load_ground_truth(sim)
 
 

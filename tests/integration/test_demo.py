@@ -103,7 +103,7 @@ def test_demo_refuses_a_foreign_folder_and_bad_options(tmp_path: Path) -> None:
     assert refused.returncode != 0 and (foreign / "keep.txt").exists()
     assert "not empty" in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
     for bad in (["--sessions", "0"], ["--preset", "huge"], ["--port", "70000"], ["--workers", "2"],
-                ["--world", "moon"]):
+                ["--world", "moon"], ["--camera", "depth=0.3"], ["--sensor", "exact", "--camera", "range_m=30"]):
         done = subprocess.run([*run, *bad, "--out", str(tmp_path / "x")], cwd=REPO, capture_output=True, text=True,
                               timeout=120)
         assert done.returncode == 2 and done.stderr.strip().splitlines()[-1].startswith("fleetmap demo: error:"), bad
