@@ -97,5 +97,5 @@ def fmt(v: Any, spec: str = ".3f") -> str:
 
 def sensor_text(report: dict[str, Any]) -> str:
     """The report's sensor and its camera / world overrides, for a table's footer."""
-    extra = [f"{flag} {item}" for flag in ("camera", "world") for item in report.get(flag, [])]
-    return " ".join([report.get("sensor", "exact"), *(f"(--{e})" for e in extra)])
+    extra = [f"--{flag} {item}" for flag in ("camera", "world") for item in report.get(flag, [])]
+    return report.get("sensor", "exact") + (f" ({' '.join(extra)})" if extra else "")

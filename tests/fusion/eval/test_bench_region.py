@@ -142,6 +142,10 @@ def test_a_camera_fleet_is_judged_by_its_miss_rates_against_the_best_baseline_of
     table = bench_region.format_region_table(report)
     assert "sem_f          0.400 vs 0.250, miss ratio 0.80x MISSED" in table
     assert "target sem_f" not in table  # the exact fleet's absolute targets are not a camera fleet's
+    assert "sensor camera, preset" in table
+    report |= {"camera": ["depth_sigma_10m=0.3"], "world": ["junction=t"]}  # the overrides the fleet ran with
+    assert "sensor camera (--camera depth_sigma_10m=0.3 --world junction=t), preset" in (
+        bench_region.format_region_table(report))
 
 
 def test_an_exact_fleet_needs_the_baselines_f_and_its_poses_within_the_slack() -> None:
