@@ -34,10 +34,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtri
 
-from fusion.config import with_overrides
 from fusion.eval.synth import shapes
 from fusion.eval.synth.visibility import in_frustum
 from fusion.labels import LABEL_BY_NAME
+from fusion.overrides import with_overrides
 from fusion.types import Pose, SemanticMesh
 
 FEATURES = 32  # random Fourier features per field: enough for a near-Gaussian marginal

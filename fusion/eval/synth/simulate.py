@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
-from fusion.config import with_overrides
 from fusion.eval.synth import shapes
 from fusion.eval.synth.camera import sensor_model
 from fusion.eval.synth.fleet import FleetParams, SubmapRecord
 from fusion.eval.synth.submap import drive
 from fusion.eval.synth.world import World, WorldParams, world_overrides
 from fusion.meshio import write_submap_ply
+from fusion.overrides import with_overrides
 from fusion.types import Pose
 
 

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fusion.config import with_overrides
 from fusion.eval.synth import placement, shapes
 from fusion.eval.synth.shapes import Part
 from fusion.labels import LABEL_BY_NAME
+from fusion.overrides import with_overrides
 
 ROAD, SIDEWALK, LANE, TERRAIN = (LABEL_BY_NAME[n].id for n in ("road", "sidewalk", "lane_marking", "terrain"))
 
