@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from fusion.config import PRESETS
@@ -47,7 +47,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from fusion.eval.synth.fleet import FleetParams
     from fusion.eval.synth.simulate import simulate
 
-    if (error := _fleet_overrides_error(args)) is not None:
+    if (error := fleet_overrides_error(args.sensor, args.camera, args.world)) is not None:
         return _fail(error)
     records = simulate(args.out, seed=args.seed, sessions=args.sessions, gps_noise=(args.gps_noise_m, args.gps_noise_deg),
                        fleet_params=FleetParams(vertex_noise_m=args.vertex_noise_m), sensor=args.sensor,
@@ -106,7 +106,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from fusion.eval.perf import run as run_throughput
 
         return run_throughput(args)
-    if (error := _fleet_overrides_error(args)) is not None:
+    if (error := fleet_overrides_error(args.sensor, args.camera, args.world)) is not None:
         return _fail(error)
     region = args.tiles > 1
     components = region and args.ablation == "components"  # the multi-tile ablation: variant rows below
@@ -185,18 +185,18 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
                         "e.g. --world max_grade=0.1 --world junction=t --world class_mix=vehicle:2")
 
 
-def _fleet_overrides_error(args: argparse.Namespace) -> str | None:
+def fleet_overrides_error(sensor: str, camera: Sequence[str], world: Sequence[str] = ()) -> str | None:
     """The one-line error of a bad ``--camera`` / ``--world`` override (None: they apply), checked before
-    anything is simulated."""
+    anything is simulated (``simulate``, ``bench``, ``fleetmap demo``)."""
     from fusion.eval.synth.camera import sensor_model
     from fusion.eval.synth.world import WorldParams, world_overrides
 
     try:
-        sensor_model(args.sensor, args.camera)
+        sensor_model(sensor, camera)
     except ValueError as exc:
         return f"--camera {exc}"
     try:
-        world_overrides(WorldParams(), args.world)
+        world_overrides(WorldParams(), world)
     except ValueError as exc:
         return f"--world {exc}"
     return None

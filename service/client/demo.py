@@ -31,13 +31,13 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import httpx
 
 from fusion.config import PRESETS
+from fusion.eval.cli import fleet_overrides_error
 
 MARKER = ".fleetmap-demo"
 SERVER_START_S = 90.0
@@ -301,12 +301,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--port {args.port} is not a TCP port")
     if args.workers and not args.broker:
         parser.error("--workers needs --broker (the embedded worker is one process)")
-    from fusion.eval.synth.camera import sensor_model
-
-    try:
-        sensor_model(args.sensor, args.camera)
-    except ValueError as exc:
-        parser.error(f"--camera {exc}")
+    if (error := fleet_overrides_error(args.sensor, args.camera)) is not None:
+        parser.error(error)
     sessions = args.sessions or DEFAULT_SESSIONS[args.world]
 
     out = args.out.resolve()
@@ -358,14 +354,14 @@ def _positive(text: str) -> int:
 
 def _simulate(sim: Path, seed: int, sessions: int, sensor: str = "camera",
               core: tuple[tuple[float, float], tuple[float, float]] = DEMO_CORE,
-              camera: Sequence[str] = ()) -> tuple[list[Any], Any]:
+              camera: list[str] | None = None) -> tuple[list[Any], Any]:
     """The simulated fleet's uploads (written under ``sim``) and its ground truth, driven through ``core``
     (``camera``: overrides of the camera model, ``--camera``)."""
     from fusion.eval.synth.simulate import load_ground_truth, simulate
     from fusion.eval.synth.world import WorldParams
 
     world = WorldParams(core_min=core[0], core_max=core[1])
-    records = simulate(sim, seed=seed, sessions=sessions, world_params=world, sensor=sensor, camera=camera)
+    records = simulate(sim, seed=seed, sessions=sessions, world_params=world, sensor=sensor, camera=camera or ())
     return records, load_ground_truth(sim)
 
 

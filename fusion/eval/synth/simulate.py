@@ -28,7 +28,6 @@ from fusion.eval.synth.fleet import FleetParams, SubmapRecord
 from fusion.eval.synth.submap import drive
 from fusion.eval.synth.world import World, WorldParams, world_overrides
 from fusion.meshio import write_submap_ply
-from fusion.overrides import with_overrides
 from fusion.types import Pose
 
 
@@ -116,9 +115,7 @@ def simulate(out_dir: str | Path, seed: int = 0, sessions: int = 5, gps_noise: t
     if sensor is not None:
         fp.camera = sensor_model(sensor, camera)
     elif camera:
-        if fp.camera is None:
-            raise ValueError("camera overrides need the camera sensor (--sensor camera)")
-        fp.camera = with_overrides(fp.camera, list(camera))
+        raise ValueError("camera overrides need the camera sensor (sensor='camera')")
     scene = World(wp)
     records = drive(scene, fp, np.random.default_rng(seed + 7919))
     out.mkdir(parents=True, exist_ok=True)
