@@ -151,6 +151,9 @@ class FusionConfig:
     # runs). Judged by the residuals after a rigid re-fit of each pair instead, camera 0 lost 0.055: a monocular
     # pair's small overlap fits rigidly (reverted). docs/METHOD_LOG.md, "A session's own overlaps by default"
     fine_own_overlap: bool = True
+    # the Cauchy scale (m) at which a session's own overlaps earn their trust (above): fine_min_dist_m / 2 until
+    # the finest radius was widened, kept where it was measured
+    fine_own_trust_m: float = 0.125
     # each free submap's monocular drift (one scale, a slow yaw and pitch bend about its local origin,
     # fusion.drift) estimated with its pose in every round of the fine registration, then held: the field
     # alignment, the reconstruction and the service's later jobs see the corrected submap. Gauss-Newton
@@ -472,6 +475,8 @@ class FusionConfig:
         if self.fine_polish_gain_max < 1:
             raise ValueError(f"fine_polish_gain_max must be >= 1 (1: the registration's weight), got "
                              f"{self.fine_polish_gain_max}")
+        if not self.fine_own_trust_m > 0:
+            raise ValueError(f"fine_own_trust_m must be > 0 (m), got {self.fine_own_trust_m}")
         if self.fine_converged_m < 0:
             raise ValueError(f"fine_converged_m must be >= 0, got {self.fine_converged_m}")
         if self.align_iterations_per_tile < 0:

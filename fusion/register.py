@@ -305,10 +305,10 @@ def _own_gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sessi
                config: FusionConfig, basin: bool) -> np.ndarray:
     """Per own-overlap match of ``part`` (``session``: the matching session, per match), from its session's own
     residuals: the gain of its kind at the round's scale ``sigma`` (:func:`_noise_gain`, ground-like and other
-    matches each by their spread) times its *trust*, the gain the same residuals earn at the finest radius's
-    Cauchy scale (``fine_min_dist_m`` / 2) over ``fine_noise_max_gain``: exact overlaps, cm apart after a rigid
-    fit, count nearly fully, a monocular session's, whose scale and bend leave dm, ~1/20. A ground-like match's
-    two gains are let up from 1 only as far as the session's walls fit tighter than that finest scale
+    matches each by their spread) times its *trust*, the gain the same residuals earn at the Cauchy scale
+    ``fine_own_trust_m`` over ``fine_noise_max_gain``: exact overlaps, cm apart after a rigid fit, count nearly
+    fully, a monocular session's, whose scale and bend leave dm, ~1/20. A ground-like match's two gains are let
+    up from 1 only as far as the session's walls fit tighter than that scale
     (:func:`_excess`): as if ``fine_noise_ground`` were on for an exact session and off for a monocular one.
 
     Why per session and why the walls speak for the ground: a session's overlaps with itself repeat its own
@@ -320,7 +320,7 @@ def _own_gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sessi
     if basin or config.fine_noise_max_gain <= 1:
         return out
     idx = np.flatnonzero(part)
-    fine, top = config.fine_min_dist_m / 2, config.fine_noise_max_gain
+    fine, top = config.fine_own_trust_m, config.fine_noise_max_gain
     for k in np.unique(session[idx]):
         mine = session[idx] == k
         g, u = ground[idx] & mine, ~ground[idx] & mine

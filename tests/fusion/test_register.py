@@ -416,7 +416,7 @@ def test_a_sessions_own_ground_counts_only_as_far_as_its_walls_fit_rigidly() -> 
     ground weighted by its spread. Each session by its own residuals, whatever the other's."""
     rng = np.random.default_rng(0)
     n = 400
-    cfg = CFG.with_(fine_noise_max_gain=20.0, fine_noise_floor_m=0.02, fine_min_dist_m=0.25)
+    cfg = CFG.with_(fine_noise_max_gain=20.0, fine_noise_floor_m=0.02, fine_own_trust_m=0.125)
     # per session: walls, then ground; exact walls ~2 cm, monocular walls ~20 cm, every road ~1 cm
     residual = np.concatenate([rng.normal(0, 0.02, n), rng.normal(0, 0.01, n),
                                rng.normal(0, 0.20, n), rng.normal(0, 0.01, n)])
@@ -433,6 +433,10 @@ def test_a_sessions_own_ground_counts_only_as_far_as_its_walls_fit_rigidly() -> 
     lifted = _own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_noise_ground=True), basin=False)
     assert lifted[3 * n:].min() > 10  # fine_noise_ground: every session's ground by its spread
     assert not _own_gains(residual, ground, part, session, 0.5, cfg, basin=True).any()
+    # the trust is earned at fine_own_trust_m, whatever the finest match radius
+    np.testing.assert_allclose(_own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_min_dist_m=0.75),
+                                          basin=False), w)
+    assert _own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_own_trust_m=0.05), basin=False)[:n].max() < 10
 
 
 def test_the_polish_trusts_matches_against_biased_odometry_as_far_as_they_proved_tight() -> None:
