@@ -171,7 +171,14 @@ class FusionConfig:
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
-    fine_min_dist_m: float = 0.25  # ... to this
+    # ... to this. Not narrower than the surfaces' own disagreement: a monocular camera's walls disagree between
+    # sessions by decimetres along the viewing rays (the residuals' robust spread at 0.75 m: ~0.25 m), and a last
+    # round at 0.25 m (Cauchy σ 0.125 m; a match needs a sample of the other surface that near, samples ~0.5 m
+    # apart) kept mostly the patches that happened to agree, fitting each submap to them:
+    # registration alone, camera seeds 3/0/1/2, surface offset horizontal / height m, 0.25 -> 0.75 m: 0.380/0.146
+    # -> 0.367/0.109, 0.455/0.162 -> 0.386/0.127, 0.220/0.132 -> 0.231/0.130, 0.349/0.150 -> 0.328/0.122
+    # (docs/METHOD_LOG.md, "The finest radius")
+    fine_min_dist_m: float = 0.75
     fine_normal_dot: float = 0.7  # a match's normals must agree this well
     fine_weight: float = 20.0  # each submap's matches count as this many observations (σ units) ...
     # ... × (σ / the residuals' robust spread)², up to this (fusion.register._noise_gain; 1: off). Start poses,
