@@ -22,7 +22,7 @@ horizontal position, the road only height and tilt; spread over the directions t
 1. correspondences: each sample's nearest sample of a submap of *another session* within the round's
    radius whose normal agrees (``fine_normal_dot``); the radius shrinks geometrically from ``fine_max_dist_m``
    (or ``fine_basin_sigmas`` × the GPS σ where wider: ``match_radii``) to
-   ``fine_min_dist_m`` over the rounds (0.75 m: not narrower than monocular surfaces disagree between
+   ``fine_min_dist_m`` over the rounds (not narrower than monocular surfaces disagree between
    sessions, or the last rounds keep only the patches that happen to agree and fit each submap to them);
 2. minimise  Σ_submaps ``fine_weight`` · mean ρ(r / σ)  +  odometry  +  GPS prior,  with r the
    point-to-plane residual along the pair's mean normal, σ half the round's radius and ρ(u) = log(1 + u²)
