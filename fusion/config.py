@@ -171,14 +171,18 @@ class FusionConfig:
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
     fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
-    # ... to this. Not narrower than the surfaces' own disagreement: a monocular camera's walls disagree between
-    # sessions by decimetres along the viewing rays (the residuals' robust spread at 0.75 m: ~0.25 m), and a last
-    # round at 0.25 m (Cauchy σ 0.125 m; a match needs a sample of the other surface that near, samples ~0.5 m
-    # apart) kept mostly the patches that happened to agree, fitting each submap to them:
-    # registration alone, camera seeds 3/0/1/2, surface offset horizontal / height m, 0.25 -> 0.75 m: 0.380/0.146
-    # -> 0.367/0.109, 0.455/0.162 -> 0.386/0.127, 0.220/0.132 -> 0.231/0.130, 0.349/0.150 -> 0.328/0.122
-    # (docs/METHOD_LOG.md, "The finest radius")
-    fine_min_dist_m: float = 0.75
+    # ... to this, ...
+    fine_min_dist_m: float = 0.25
+    # ... but not narrower than this × the robust spread of the other sessions' wall residuals after the previous
+    # round, up to fine_polish_max_m (fusion.register.spread_floor; 0: off): the first round so raised is the last.
+    # A monocular camera's walls disagree between sessions by decimetres along the viewing rays, and a last round at
+    # 0.25 m (Cauchy σ 0.125 m; a match needs a sample of the other surface that near, samples ~0.5 m apart) kept
+    # mostly the patches that happened to agree, fitting each submap to them; exact surfaces, cm apart, register
+    # best there. Registration alone, camera seeds 3/0/1/2, surface offset horizontal / height m, last radius
+    # 0.25 -> 0.75 m: 0.380/0.146 -> 0.367/0.109, 0.455/0.162 -> 0.386/0.127, 0.220/0.132 -> 0.231/0.130,
+    # 0.349/0.150 -> 0.328/0.122; exact seed 0 pose 0.111 -> 0.156 m (docs/METHOD_LOG.md, "The finest radius",
+    # "The finest radius from the data")
+    fine_spread_radius: float = 5.0
     fine_normal_dot: float = 0.7  # a match's normals must agree this well
     fine_weight: float = 20.0  # each submap's matches count as this many observations (σ units) ...
     # ... × (σ / the residuals' robust spread)², up to this (fusion.register._noise_gain; 1: off). Start poses,
@@ -482,6 +486,8 @@ class FusionConfig:
         if self.fine_polish_gain_max < 1:
             raise ValueError(f"fine_polish_gain_max must be >= 1 (1: the registration's weight), got "
                              f"{self.fine_polish_gain_max}")
+        if not self.fine_spread_radius >= 0:
+            raise ValueError(f"fine_spread_radius must be >= 0 (0: off), got {self.fine_spread_radius}")
         if not self.fine_own_trust_m > 0:
             raise ValueError(f"fine_own_trust_m must be > 0 (m), got {self.fine_own_trust_m}")
         if self.fine_converged_m < 0:

@@ -22,8 +22,9 @@ horizontal position, the road only height and tilt; spread over the directions t
 1. correspondences: each sample's nearest sample of a submap of *another session* within the round's
    radius whose normal agrees (``fine_normal_dot``); the radius shrinks geometrically from ``fine_max_dist_m``
    (or ``fine_basin_sigmas`` × the GPS σ where wider: ``match_radii``) to
-   ``fine_min_dist_m`` over the rounds (not narrower than monocular surfaces disagree between
-   sessions, or the last rounds keep only the patches that happen to agree and fit each submap to them);
+   ``fine_min_dist_m`` over the rounds, but not narrower than the surfaces disagree between sessions
+   (``spread_floor``: a monocular camera's walls disagree by decimetres, and rounds narrower than that keep
+   only the patches that happen to agree and fit each submap to them);
 2. minimise  Σ_submaps ``fine_weight`` · mean ρ(r / σ)  +  odometry  +  GPS prior,  with r the
    point-to-plane residual along the pair's mean normal, σ half the round's radius and ρ(u) = log(1 + u²)
    (Cauchy: a match to a parked car another session did not see, or to a monocular depth blob, pulls
@@ -119,7 +120,8 @@ def match_radii(config: FusionConfig, gps_sigma_m: float) -> np.ndarray:
     round left exact sessions 1-1.4 m off (3×3 bench, σ 4 m, seeds 0-2: 0.72 / 1.02 / 0.84 m before the
     field) where 5 m brought them to 0.24 / 0.22 / 0.29 m. A wider start keeps the default schedule's
     shrink per round (``fine_rounds`` rounds over the default range), so it adds rounds instead of
-    coarsening each step."""
+    coarsening each step. :func:`fine_register` ends the schedule early where the surfaces disagree
+    (:func:`spread_floor`)."""
     lo, hi = config.fine_min_dist_m, config.fine_max_dist_m
     if config.fine_rounds <= 1 or hi <= lo:
         return np.geomspace(hi, lo, max(1, config.fine_rounds))
@@ -129,12 +131,32 @@ def match_radii(config: FusionConfig, gps_sigma_m: float) -> np.ndarray:
     return np.geomspace(start, lo, rounds)
 
 
+def spread_floor(config: FusionConfig, wall_spread_m: float | None) -> float:
+    """The narrowest radius (m) a round may take given the robust spread of the other sessions' wall residuals
+    after the previous round (``wall_spread_m``; None before the first): ``fine_spread_radius`` × it, within
+    [``fine_min_dist_m``, ``fine_polish_max_m``] (``fine_min_dist_m`` with ``fine_spread_radius`` 0 or no spread).
+
+    Why: a match survives only where a sample of the other session's surface lies within the radius, and
+    the round's Cauchy scale is half the radius. Where the surfaces disagree by more than the schedule's
+    last radius, the last rounds kept the patches that happened to agree and fitted each submap to them
+    (a monocular camera's walls, robust spread ~0.13 m after a round at 0.8 m: at 0.25 m the registration
+    tilted seed 3's submaps, 0.32° -> 0.36°). At 5 × the spread the Cauchy scale is 2.5 × it, and a match
+    one spread off keeps 86 % of an agreeing one's weight. Exact surfaces (spread ~0.04 m) keep the
+    schedule's 0.25 m, where their registration is cm-precise (exact seed 0: 0.111 m at 0.25 m, 0.156 m at
+    0.75 m). The ceiling bounds an early round's spread, which still holds misalignment."""
+    if config.fine_spread_radius <= 0 or wall_spread_m is None:
+        return config.fine_min_dist_m
+    top = max(config.fine_polish_max_m, config.fine_min_dist_m)
+    return float(np.clip(config.fine_spread_radius * wall_spread_m, config.fine_min_dist_m, top))
+
+
 def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.Tensor, config: FusionConfig,
                   device: torch.device | None = None, radii: np.ndarray | None = None) -> FineResult:
     """Register the free submaps of ``subs`` (start poses ``start``, GPS anchors ``gps`` (M, 4, 4), one
     frame for all) jointly onto each other. Submaps that overlap no other keep their odometry/GPS
     balance; fixed submaps (``free`` False) hold. ``radii``: the rounds' match radii (default
-    ``match_radii``)."""
+    ``match_radii``), each raised to :func:`spread_floor` of the previous round's residuals; the first round
+    so raised is the last."""
     dev = device or torch.device("cpu")
     rng = np.random.default_rng(config.seed)
     local, normals, owner = [], [], []
@@ -192,9 +214,13 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
                           for s, c in zip(subs, cents, strict=True)], device=dev)
     free_t = torch.tensor([s.free for s in subs], device=dev)
     colour = torch.tensor(_chain_colours(subs), device=dev)
-    rounds = []
+    rounds: list[dict[str, float | None]] = []
     held = HeldPairs(~free_t.cpu().numpy())  # held submaps never move here: their mutual queries once
-    for radius in radii:
+    spread: float | None = None  # the latest round's wall spread (spread_floor)
+    for scheduled in radii:
+        radius = max(float(scheduled), spread_floor(config, spread)) if scheduled <= config.fine_max_dist_m \
+            else float(scheduled)
+        last = radius > scheduled  # the surfaces disagree this much: no narrower round
         with torch.no_grad():
             now = current if gauss_newton else posed_now()
             posed = transform(now, own_t, pts_t).cpu().numpy()
@@ -208,6 +234,8 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
             src, dst = np.concatenate([src, s_own]), np.concatenate([dst, d_own])
         if len(src) == 0:
             rounds.append({"radius_m": float(radius), "matches": 0})
+            if last:
+                break
             continue
         mean_n = posed_n[src] + posed_n[dst]
         mean_n /= np.linalg.norm(mean_n, axis=1, keepdims=True)
@@ -259,8 +287,11 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
                 steps += more
             with torch.no_grad():
                 res = match.residual(current)
+            spread = None if basin else _wall_spread(res.cpu().numpy()[:n_other], ground[:n_other])
             rounds.append({"radius_m": float(radius), "matches": int(len(src)), "steps": steps, "gain": gain,
-                           "median_residual_m": float(res.abs().median())})
+                           "median_residual_m": float(res.abs().median()), "wall_spread_m": spread})
+            if last:
+                break
             continue
 
         def objective(residual: Callable[[torch.Tensor], torch.Tensor] = residual, w: torch.Tensor = w,
@@ -275,8 +306,11 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
         _minimise([poses.rho, poses.phi, whole.rho, whole.phi], objective, config.fine_steps)
         with torch.no_grad():
             res = residual(posed_now())
+        spread = None if basin else _wall_spread(res.cpu().numpy()[:n_other], ground[:n_other])
         rounds.append({"radius_m": float(radius), "matches": int(len(src)),
-                       "median_residual_m": float(res.abs().median())})
+                       "median_residual_m": float(res.abs().median()), "wall_spread_m": spread})
+        if last:
+            break
     with torch.no_grad():
         final = (current if gauss_newton else posed_now()).cpu().numpy()
     moved = np.stack([m[:3, :3] @ c + m[:3, 3] for m, c in zip(final, cents, strict=True)]) - centroids
@@ -290,6 +324,16 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
                                 if free.any() else 0.0,
                                 "prior_sigma": [float(np.expm1(sigma_p[0])), *np.degrees(sigma_p[1:]).tolist()]}
     return FineResult(list(final), metrics, drifts)
+
+
+WALL_SPREAD_MIN_MATCHES = 100  # fewer upright matches than this: no spread (spread_floor keeps the schedule)
+
+
+def _wall_spread(residual: np.ndarray, ground: np.ndarray) -> float | None:
+    """The robust spread (m; 1.4826 × the median |residual|) of the upright matches' residuals (``ground``:
+    per match, ground-like), None with fewer than ``WALL_SPREAD_MIN_MATCHES`` of them."""
+    upright = residual[~ground]
+    return float(1.4826 * np.median(np.abs(upright))) if len(upright) >= WALL_SPREAD_MIN_MATCHES else None
 
 
 def _gains(residual: np.ndarray, ground: np.ndarray, part: np.ndarray, sigma: float, config: FusionConfig,

@@ -498,7 +498,8 @@ COMPONENTS: tuple[str, ...] = (
     "fine_drift=false",  # ... no submap's monocular scale and bend estimated with its pose (fusion.drift)
     "fine_drift_prior_fit=false",  # ... estimated under the fixed priors, not the ones fitted to the fleet
     "fine_noise_max_gain=1",  # ... the data's weight not raised where their residuals are tight
-    "fine_min_dist_m=0.25",  # ... its last round at 0.25 m, narrower than monocular surfaces disagree
+    "fine_spread_radius=0",  # ... its rounds down to 0.25 m however far the sessions' surfaces disagree
+    "fine_min_dist_m=0.75,fine_spread_radius=0",  # ... its last round at 0.75 m for every fleet (fortieth session)
     "fine_polish_rounds=0",  # ... not run once more after the field alignment
     "fine_normal_balance=0",  # ... samples by area, not spread over the directions vertical faces face
     "align_planar_cell_m=0",  # poses move in 6 DoF from the coarsest level (not only x, y, yaw there)

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
-from fusion.config import FusionConfig
 from fusion.matching import HeldPairs, correspondences
-from fusion.register import _own_gains, fine_register, match_radii, surface_samples
+from fusion.register import _own_gains, fine_register, match_radii, spread_floor, surface_samples
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
@@ -491,21 +491,52 @@ def test_the_last_round_does_not_select_the_matches_where_monocular_surfaces_hap
     their true poses, each wrong by up to ~0.3 m in smooth patches, against the same surfaces exact. At 0.25 m
     (the old default) the monocular pair kept ~3/4 of the share of its first round's matches the exact pair kept
     (exact 0.30, monocular 0.23: samples ~0.5 m apart leave few within 0.25 m at all), and the fit followed the
-    patches that agree; the default last round keeps the same share of both (0.88), so each submap is fitted to
-    the mean of its disagreement with the others (camera seeds 0-3, registration alone: height error 0.13-0.16 m
-    at 0.25 m, 0.11-0.13 m at 0.75 m; docs/METHOD_LOG.md, "The finest radius")."""
+    patches that agree; at 0.75 m both keep the same share (0.88), so each submap is fitted to the mean of its
+    disagreement with the others (camera seeds 0-3, registration alone: height error 0.13-0.16 m at 0.25 m,
+    0.11-0.13 m at 0.75 m; docs/METHOD_LOG.md, "The finest radius")."""
 
-    def kept(amplitude: float, config: FusionConfig) -> float:
+    def kept(amplitude: float, last: float) -> float:
         rng = np.random.default_rng(0)
         meshes = [_warped(_block(), 1, amplitude), _warped(_block(extra_box=True), 2, amplitude)]
         subs = [SubmapInput(n, f"s{n}", 0, m, Pose.identity(), Pose.identity(), Sigma(1.5, 1.5))
                 for n, m in zip("ab", meshes, strict=True)]
         pts, nrm = zip(*(surface_samples(s, 2000, 4.0, rng) for s in subs), strict=True)
         posed, normals, owner = np.concatenate(pts), np.concatenate(nrm), np.repeat([0, 1], 2000)
-        radii = match_radii(config, 1.5)
-        first, last = (len(correspondences(posed, normals, owner, float(r), 0.7)[0]) for r in (radii[0], radii[-1]))
-        return last / first
+        first, then = (len(correspondences(posed, normals, owner, r, 0.7)[0]) for r in (CFG.fine_max_dist_m, last))
+        return then / first
 
-    assert kept(0.3, CFG) > 0.95 * kept(0.0, CFG)
-    narrow = CFG.with_(fine_min_dist_m=0.25)
-    assert kept(0.3, narrow) < 0.85 * kept(0.0, narrow)
+    assert kept(0.3, 0.75) > 0.95 * kept(0.0, 0.75)
+    assert kept(0.3, 0.25) < 0.85 * kept(0.0, 0.25)
+
+
+def _warped_pair(amplitude: float) -> list[SubmapInput]:
+    """``_pair``'s two sessions, their surfaces ``_warped`` by ± ``amplitude`` m; ``b`` 0.36 m / 1° off."""
+    subs = _pair(Pose(np.array([0.3, -0.2, 0.1]), rot_z(1.0)))
+    for seed, s in enumerate(subs, 1):
+        s.mesh = _warped(s.mesh, seed, amplitude)
+    return subs
+
+
+def test_the_rounds_stop_narrowing_where_the_sessions_surfaces_disagree() -> None:
+    """The schedule's last radius (``fine_min_dist_m``) suits surfaces that agree to cm; where two sessions' walls
+    disagree by decimetres (a monocular camera's), the rounds stop at ``fine_spread_radius`` × the robust spread of
+    the wall residuals instead (fusion.register.spread_floor), so the last round does not select the patches that
+    happen to agree (the test above)."""
+    exact = _run(_warped_pair(0.0)).metrics["rounds"]
+    assert exact[-1]["radius_m"] == CFG.fine_min_dist_m and len(exact) == len(match_radii(CFG, 2.0))
+    assert exact[-1]["wall_spread_m"] < 0.01
+    mono = _run(_warped_pair(0.3)).metrics["rounds"]
+    spread = mono[-2]["wall_spread_m"]  # ~0.1 m
+    assert 0.07 < spread < 0.15, spread
+    assert len(mono) < len(exact) and mono[-1]["radius_m"] == pytest.approx(CFG.fine_spread_radius * spread)
+    assert all(r["radius_m"] >= 0.5 for r in mono)
+    off = _run(_warped_pair(0.3), fine_spread_radius=0.0).metrics["rounds"]  # the schedule to its end
+    assert [r["radius_m"] for r in off] == pytest.approx(match_radii(CFG, 2.0).tolist())
+
+
+def test_the_spread_floor_lies_between_the_schedules_last_radius_and_the_polishs_first() -> None:
+    assert spread_floor(CFG, None) == CFG.fine_min_dist_m  # before the first round
+    assert spread_floor(CFG, 0.01) == CFG.fine_min_dist_m  # exact surfaces: the schedule's own end
+    assert spread_floor(CFG, 0.12) == pytest.approx(CFG.fine_spread_radius * 0.12)
+    assert spread_floor(CFG, 0.5) == CFG.fine_polish_max_m  # an early round's spread holds misalignment too
+    assert spread_floor(CFG.with_(fine_spread_radius=0.0), 0.12) == CFG.fine_min_dist_m
