@@ -224,7 +224,7 @@ def _polish(subs: list[SubmapInput], poses: PoseSet, gps: torch.Tensor, config: 
             gain: float) -> tuple[PoseSet, dict[str, Any]]:
     """The fine registration once more from the field alignment's poses, over ``fine_polish_rounds`` radii
     from ``fine_polish_max_m`` down to ``fine_min_dist_m`` (or where the surfaces disagree:
-    ``fusion.register.spread_floor``): the field's stochastic pose steps (Adam, one
+    ``fusion.match_weights.spread_floor``): the field's stochastic pose steps (Adam, one
     tile per step) leave each pose a few cm to dm off the optimum of the surfaces it was trained on, and
     on an exact fleet they took the map from 0.07 m (the fine registration) to 0.20 m (3×3 bench, seed 0).
 

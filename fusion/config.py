@@ -137,7 +137,7 @@ class FusionConfig:
     # only walls, poles and other upright surfaces do)
     fine_same_session_ground: bool = True
     # a session's consecutive submaps match each other too, as data of their own beside the other sessions'
-    # matches, per session (fusion.register._own_gains): weighted by the gain their residuals earn at the
+    # matches, per session (fusion.match_weights.own_gains): weighted by the gain their residuals earn at the
     # finest radius over fine_noise_max_gain (exact overlaps, cm apart after a rigid fit, count nearly fully; a
     # monocular session's, whose scale and bend leave dm a rigid fit cannot remove, ~1/20: matching them stiffly
     # hands the distortion on to the chain, fine_same_session above); ground-like matches weighted up by their
@@ -170,11 +170,11 @@ class FusionConfig:
     fine_drift_prior_min_submaps: int = 8
     fine_rounds: int = 8  # correspondence rounds, radius shrinking geometrically ...
     fine_max_dist_m: float = 2.0  # ... from this ...
-    fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.register.match_radii)
+    fine_basin_sigmas: float = 1.25  # ... or this × the submaps' median GPS σ where wider (fusion.match_weights.match_radii)
     # ... to this, ...
     fine_min_dist_m: float = 0.25
     # ... but not narrower than this × the robust spread of the other sessions' wall residuals after the previous
-    # round, up to fine_polish_max_m (fusion.register.spread_floor; 0: off): the first round so raised is the last.
+    # round, up to fine_polish_max_m (fusion.match_weights.spread_floor; 0: off): the first round so raised is the last.
     # A monocular camera's walls disagree between sessions by decimetres along the viewing rays, and a last round at
     # 0.25 m (Cauchy σ 0.125 m; a match needs a sample of the other surface that near, samples ~0.5 m apart) kept
     # mostly the patches that happened to agree, fitting each submap to them; exact surfaces, cm apart, register
@@ -185,7 +185,7 @@ class FusionConfig:
     fine_spread_radius: float = 5.0
     fine_normal_dot: float = 0.7  # a match's normals must agree this well
     fine_weight: float = 20.0  # each submap's matches count as this many observations (σ units) ...
-    # ... × (σ / the residuals' robust spread)², up to this (fusion.register._noise_gain; 1: off). Start poses,
+    # ... × (σ / the residuals' robust spread)², up to this (fusion.match_weights.noise_gain; 1: off). Start poses,
     # 3x3 bench seeds 0/1/2, GPS 1.5 m (with fine_same_session): exact 0.175/0.174/0.126 -> 0.071/0.044/0.049 m
     fine_noise_max_gain: float = 20.0
     fine_noise_floor_m: float = 0.02

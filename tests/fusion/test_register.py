@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from fusion.match_weights import match_radii, own_gains, spread_floor
 from fusion.matching import HeldPairs, correspondences
-from fusion.register import _own_gains, fine_register, match_radii, spread_floor, surface_samples
+from fusion.register import fine_register, surface_samples
 from fusion.types import Pose, SemanticMesh, Sigma, SubmapInput
 from tests.fusion.test_coarse import _block
 from tests.scene import rot_z, tiny_config
@@ -306,17 +307,17 @@ def test_an_unknown_solver_is_refused() -> None:
 
 
 def test_the_data_count_more_the_tighter_they_agree_within_the_cap() -> None:
-    from fusion.register import _noise_gain
+    from fusion.match_weights import noise_gain
 
     rng = np.random.default_rng(0)
     tight = rng.normal(scale=0.03, size=4000)  # exact surfaces: cm residuals
     loose = rng.normal(scale=0.5, size=4000)  # a round whose residuals are still the misalignment
     cfg = CFG.with_(fine_noise_max_gain=20.0)
-    assert 15.0 < _noise_gain(tight, 0.125, cfg) < 20.0  # (0.125 / 0.03)² ≈ 17
-    assert _noise_gain(tight, 0.125, cfg.with_(fine_noise_max_gain=5.0)) == 5.0
-    assert _noise_gain(loose, 0.125, cfg) == 1.0  # never below the base weight
-    assert _noise_gain(tight * 0.01, 0.125, cfg) == 20.0  # the floor keeps exact duplicates finite
-    assert _noise_gain(tight, 0.125, CFG.with_(fine_noise_max_gain=1.0)) == 1.0  # off
+    assert 15.0 < noise_gain(tight, 0.125, cfg) < 20.0  # (0.125 / 0.03)² ≈ 17
+    assert noise_gain(tight, 0.125, cfg.with_(fine_noise_max_gain=5.0)) == 5.0
+    assert noise_gain(loose, 0.125, cfg) == 1.0  # never below the base weight
+    assert noise_gain(tight * 0.01, 0.125, cfg) == 20.0  # the floor keeps exact duplicates finite
+    assert noise_gain(tight, 0.125, CFG.with_(fine_noise_max_gain=1.0)) == 1.0  # off
 
 
 def test_the_polish_after_the_field_registers_what_the_field_left_a_few_decimetres_off() -> None:
@@ -424,20 +425,20 @@ def test_a_sessions_own_ground_counts_only_as_far_as_its_walls_fit_rigidly() -> 
     ground = np.tile(np.repeat([False, True], n), 2)
     session = np.repeat([0, 1], 2 * n)
     part = np.ones(4 * n, bool)
-    w = _own_gains(residual, ground, part, session, 0.5, cfg, basin=False)
+    w = own_gains(residual, ground, part, session, 0.5, cfg, basin=False)
     exact_walls, exact_ground, mono_walls, mono_ground = (w[k * n:(k + 1) * n] for k in range(4))
     assert exact_walls.min() > 10 and exact_ground.min() > 10  # ~18 and ~15: nearly fully trusted
     np.testing.assert_allclose(mono_ground, 1 / 20)  # the ground rule: gain 1, trust 1/20
     assert mono_walls.max() < 0.5  # (0.5 / 0.2)² × 1/20
-    alone = _own_gains(residual[2 * n:], ground[2 * n:], part[2 * n:], session[2 * n:], 0.5, cfg, basin=False)
+    alone = own_gains(residual[2 * n:], ground[2 * n:], part[2 * n:], session[2 * n:], 0.5, cfg, basin=False)
     np.testing.assert_allclose(alone, np.concatenate([mono_walls, mono_ground]))  # the other session has no say
-    lifted = _own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_noise_ground=True), basin=False)
+    lifted = own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_noise_ground=True), basin=False)
     assert lifted[3 * n:].min() > 10  # fine_noise_ground: every session's ground by its spread
-    assert not _own_gains(residual, ground, part, session, 0.5, cfg, basin=True).any()
+    assert not own_gains(residual, ground, part, session, 0.5, cfg, basin=True).any()
     # the trust is earned at fine_own_trust_m, whatever the finest match radius
-    np.testing.assert_allclose(_own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_min_dist_m=0.75),
+    np.testing.assert_allclose(own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_min_dist_m=0.75),
                                           basin=False), w)
-    assert _own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_own_trust_m=0.05), basin=False)[:n].max() < 10
+    assert own_gains(residual, ground, part, session, 0.5, cfg.with_(fine_own_trust_m=0.05), basin=False)[:n].max() < 10
 
 
 def test_the_polish_trusts_matches_against_biased_odometry_as_far_as_they_proved_tight() -> None:
@@ -520,7 +521,7 @@ def _warped_pair(amplitude: float) -> list[SubmapInput]:
 def test_the_rounds_stop_narrowing_where_the_sessions_surfaces_disagree() -> None:
     """The schedule's last radius (``fine_min_dist_m``) suits surfaces that agree to cm; where two sessions' walls
     disagree by decimetres (a monocular camera's), the rounds stop at ``fine_spread_radius`` × the robust spread of
-    the wall residuals instead (fusion.register.spread_floor), so the last round does not select the patches that
+    the wall residuals instead (fusion.match_weights.spread_floor), so the last round does not select the patches that
     happen to agree (the test above)."""
     exact = _run(_warped_pair(0.0)).metrics["rounds"]
     assert exact[-1]["radius_m"] == CFG.fine_min_dist_m and len(exact) == len(match_radii(CFG, 2.0))
