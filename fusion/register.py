@@ -23,8 +23,8 @@ horizontal position, the road only height and tilt; spread over the directions t
    radius whose normal agrees (``fine_normal_dot``); the radius shrinks geometrically from ``fine_max_dist_m``
    (or ``fine_basin_sigmas`` × the GPS σ where wider: ``fusion.match_weights.match_radii``) to
    ``fine_min_dist_m`` over the rounds, but not narrower than the surfaces disagree between sessions
-   (``fusion.match_weights.spread_floor``: a monocular camera's walls disagree by decimetres, and rounds narrower than that keep
-   only the patches that happen to agree and fit each submap to them);
+   (``fusion.match_weights.spread_floor``: a monocular camera's walls disagree by decimetres, and rounds
+   narrower than that keep only the patches that happen to agree and fit each submap to them);
 2. minimise  Σ_submaps ``fine_weight`` · mean ρ(r / σ)  +  odometry  +  GPS prior,  with r the
    point-to-plane residual along the pair's mean normal, σ half the round's radius and ρ(u) = log(1 + u²)
    (Cauchy: a match to a parked car another session did not see, or to a monocular depth blob, pulls
@@ -248,27 +248,23 @@ def fine_register(subs: list[SubmapInput], start: list[np.ndarray], gps: torch.T
                 steps += more
             with torch.no_grad():
                 res = match.residual(current)
-            spread = None if basin else wall_spread(res.cpu().numpy()[:n_other], ground[:n_other])
-            rounds.append({"radius_m": float(radius), "matches": int(len(src)), "steps": steps, "gain": gain,
-                           "median_residual_m": float(res.abs().median()), "wall_spread_m": spread})
-            if last:
-                break
-            continue
+            solver: dict[str, float | None] = {"steps": steps, "gain": gain}
+        else:
+            def objective(residual: Callable[[torch.Tensor], torch.Tensor] = residual, w: torch.Tensor = w,
+                          sigma: float = sigma) -> torch.Tensor:
+                t = posed_now()
+                r = residual(t) / sigma
+                data = (w * torch.log1p(r * r)).sum()
+                odo = odometry_loss(t, terms.pairs, terms.odom_rel, terms.odom_ist, terms.odom_isr) * n_pairs
+                prior = gps_prior_loss(t, gps, terms.gps_ist, terms.gps_isr) * n_subs
+                return data + odo + prior
 
-        def objective(residual: Callable[[torch.Tensor], torch.Tensor] = residual, w: torch.Tensor = w,
-                      sigma: float = sigma) -> torch.Tensor:
-            t = posed_now()
-            r = residual(t) / sigma
-            data = (w * torch.log1p(r * r)).sum()
-            odo = odometry_loss(t, terms.pairs, terms.odom_rel, terms.odom_ist, terms.odom_isr) * n_pairs
-            prior = gps_prior_loss(t, gps, terms.gps_ist, terms.gps_isr) * n_subs
-            return data + odo + prior
-
-        _minimise([poses.rho, poses.phi, whole.rho, whole.phi], objective, config.fine_steps)
-        with torch.no_grad():
-            res = residual(posed_now())
+            _minimise([poses.rho, poses.phi, whole.rho, whole.phi], objective, config.fine_steps)
+            with torch.no_grad():
+                res = residual(posed_now())
+            solver = {}
         spread = None if basin else wall_spread(res.cpu().numpy()[:n_other], ground[:n_other])
-        rounds.append({"radius_m": float(radius), "matches": int(len(src)),
+        rounds.append({"radius_m": float(radius), "matches": int(len(src)), **solver,
                        "median_residual_m": float(res.abs().median()), "wall_spread_m": spread})
         if last:
             break
