@@ -56,8 +56,11 @@ POSE_SLACK = (0.03, 0.05)
 
 def against_baseline(rows: dict[str, dict[str, Any]], sensor: str, row: str = "fused") -> dict[str, Any] | None:
     """``row`` against the best of the baseline rows (``BASELINE_ROWS``; per figure the best of them) of the same
-    run: the best baseline figures (``baseline_*``), the miss-rate ratios (1 - F of ``row`` over the baseline's)
-    and, per condition of the sensor's fleet, whether it holds (``checks``). None without a baseline row or ``row``."""
+    run: the best baseline figures (``baseline_*``), the miss-rate ratios (1 - F of ``row`` over the baseline's),
+    the F each bound needs (``*_needed``) and, with a ``concat`` row in the run, what the uploads themselves score
+    at their true poses (``*_uploads``: where it is below the need, no fusion of them reaches the bound without
+    labels or surfaces better than the sensor's own), and per condition of the sensor's fleet, whether it holds
+    (``checks``). None without a baseline row or ``row``."""
     fused, base = rows.get(row), [rows[n] for n in BASELINE_ROWS if rows.get(n)]
     if not fused or not base:
         return None
@@ -71,6 +74,8 @@ def against_baseline(rows: dict[str, dict[str, Any]], sensor: str, row: str = "f
         ref, v = best(key, max), fused.get(key)
         out[f"baseline_{key}"] = ref
         out[f"{key}_miss_ratio"] = None if ref is None or v is None or ref >= 1 else (1 - v) / (1 - ref)
+        out[f"{key}_needed"] = None if ref is None else (1 - MISS_RATIO_MAX * (1 - ref) if sensor == "camera" else ref)
+        out[f"{key}_uploads"] = rows.get("concat", {}).get(key)
         if sensor == "camera":
             ratio = out[f"{key}_miss_ratio"]
             out["checks"][f"{key}_miss_ratio"] = None if ratio is None else ratio <= MISS_RATIO_MAX
@@ -458,9 +463,12 @@ def format_region_table(report: dict[str, Any]) -> str:
                         if camera else f"exact fleet: F at least, poses within {POSE_SLACK[0]:g} m / {POSE_SLACK[1]:g} deg")
                      + "):")
         for key in ("geo_f", "sem_f"):
+            uploads = versus.get(f"{key}_uploads")
             lines.append(f"    {key:<14} {fmt(fused.get(key))} vs {fmt(versus[f'baseline_{key}'])}, miss ratio "
                          f"{fmt(versus[f'{key}_miss_ratio'], '.2f')}x "
-                         f"{mark[versus['checks'].get(f'{key}_miss_ratio' if camera else key)]}")
+                         f"{mark[versus['checks'].get(f'{key}_miss_ratio' if camera else key)]} (needs "
+                         f"{fmt(versus.get(f'{key}_needed'))}"
+                         + ("" if uploads is None else f"; the uploads at their true poses: {fmt(uploads)}") + ")")
         for key in ("pose_trans_m", "pose_rot_deg"):
             lines.append(f"    {key:<14} {fmt(fused.get(key))} vs {fmt(versus[f'baseline_{key}'])} {mark[versus['checks'][key]]}")
         if camera:

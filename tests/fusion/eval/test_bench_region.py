@@ -140,7 +140,16 @@ def test_a_camera_fleet_is_judged_by_its_miss_rates_against_the_best_baseline_of
     report = {"rows": _rows(), "against_baseline": versus, "sensor": "camera", "submaps": 1, "sessions": 1, "tiles": 1,
               "tile_size_m": 64.0, "preset": "tiny", "seed": 0, "simulate_s": 0.0, "memory": {"peak_rss_mib": 1.0}}
     table = bench_region.format_region_table(report)
-    assert "sem_f          0.400 vs 0.250, miss ratio 0.80x MISSED" in table
+    assert "sem_f          0.400 vs 0.250, miss ratio 0.80x MISSED (needs 0.475)" in table
+    # with the uploads at their true poses in the same run: what the bound asks beside what the input holds
+    rows = _rows() | {"concat": {"geo_f": 0.9, "sem_f": 0.45}}
+    with_uploads = bench_region.against_baseline(rows, "camera")
+    assert with_uploads is not None
+    assert with_uploads["sem_f_needed"] == pytest.approx(0.475) and with_uploads["sem_f_uploads"] == 0.45
+    assert with_uploads["geo_f_needed"] == pytest.approx(0.72) and with_uploads["geo_f_uploads"] == 0.9
+    assert versus["sem_f_uploads"] is None  # no concat row: nothing said about the input
+    assert "miss ratio 0.80x MISSED (needs 0.475; the uploads at their true poses: 0.450)" in (
+        bench_region.format_region_table(report | {"rows": rows, "against_baseline": with_uploads}))
     assert "target sem_f" not in table  # the exact fleet's absolute targets are not a camera fleet's
     assert "sensor camera, preset" in table
     report |= {"camera": ["depth_sigma_10m=0.3"], "world": ["junction=t"]}  # the overrides the fleet ran with
@@ -154,6 +163,7 @@ def test_an_exact_fleet_needs_the_baselines_f_and_its_poses_within_the_slack() -
     versus = bench_region.against_baseline(rows, "exact")
     assert versus is not None
     assert versus["checks"] == {"geo_f": True, "sem_f": False, "pose_trans_m": True, "pose_rot_deg": True}
+    assert versus["sem_f_needed"] == 0.25  # an exact fleet's F: at least the baseline's
     rows["fused"]["pose_trans_m"] = 0.94  # 0.04 m over the best baseline's
     assert bench_region.against_baseline(rows, "exact")["checks"]["pose_trans_m"] is False  # type: ignore[index]
     assert bench_region.against_baseline({"fused": rows["fused"]}, "exact") is None  # no baseline row: nothing to say
