@@ -117,6 +117,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         args.ablation = None
     if args.variant and not region:
         return _fail("--variant and --ablation components run on the multi-tile bench (--tiles 2 or more)")
+    if args.seeds and not (region and not args.ablation):
+        return _fail("--seeds runs the multi-tile bench (--tiles 2 or more, no --ablation but components)")
     if wants_extras(args) and not (region and args.baseline and not args.ablation):
         run_extras(args)  # --ablation, or --baseline --tiles 1: fusion.eval.ablations prints its own tables
         return 0
@@ -144,16 +146,31 @@ def cmd_bench(args: argparse.Namespace) -> int:
                             align_iterations_per_tile=args.align_iterations or base.align_iterations_per_tile)
     gps_noise = (args.gps_noise_m, args.gps_noise_deg)
     if region:  # the multi-tile bench: align the region, reconstruct every tile
-        from fusion.eval.bench_region import run_region_bench
+        from fusion.eval.bench_region import run_region_bench, run_region_seeds
 
-        run_region_bench(args.preset, args.sessions, gps_noise, args.seed, args.json, rows, config, print,
-                         args.tile_size, args.vertex_noise_m, args.tiles, args.sensor, baseline_config,
-                         args.variant, args.camera, args.world)
+        bench = {"preset": args.preset, "sessions": args.sessions, "gps_noise": gps_noise, "rows": rows,
+                 "config": config, "tile_size": args.tile_size, "vertex_noise_m": args.vertex_noise_m,
+                 "tiles": args.tiles, "sensor": args.sensor, "baseline_config": baseline_config,
+                 "variants": args.variant, "camera": args.camera, "world": args.world}
+        if args.seeds:
+            run_region_seeds(args.seeds, json_path=args.json, out=print, **bench)
+        else:
+            run_region_bench(seed=args.seed, json_path=args.json, out=print, **bench)
         return 0
     run_bench(preset=args.preset, sessions=args.sessions, gps_noise=gps_noise, seed=args.seed,
               json_path=args.json, rows=rows, tile_size=args.tile_size, vertex_noise_m=args.vertex_noise_m,
               config=config, sensor=args.sensor, camera=args.camera, world=args.world)
     return 0
+
+
+def _seed_list(text: str) -> list[int]:
+    try:
+        seeds = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"seeds must be distinct, got {text!r}")
+    return seeds
 
 
 def _positive_int(text: str) -> int:
@@ -225,6 +242,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", default=None, metavar="FILE", help="write every figure to FILE")
     add_fleet_arguments(p)
     p.add_argument("--rows", default=None, help="comma-separated bench rows (default: all)")
+    p.add_argument("--seeds", type=_seed_list, default=None, metavar="N,N,...",
+                   help="(multi-tile) the bench on each of these seeds in turn, each its own world and fleet, then "
+                        "every figure and the verdict against the baseline across them (instead of --seed)")
     p.add_argument("--tile-size", type=float, default=None,
                    help="benchmark tile edge, metres (default: 64 for cpu, 128 for paper)")
     p.add_argument("--tiles", type=_positive_int, default=3,

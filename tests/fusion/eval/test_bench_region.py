@@ -122,6 +122,51 @@ def test_variants_are_fused_rows_with_their_overrides_on_the_same_data(monkeypat
     assert "sdf_robust_m=0.1,consensus=true" in table and "0.800" in table  # the third row's geo F
 
 
+def test_seeds_each_run_their_own_fleet_and_are_judged_across(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:  # noqa: ANN001
+    """``--seeds``: one world and fleet per seed, each with the same rows; the figures per seed and their mean,
+    and per condition of the verdict against the baseline the seeds it held on."""
+    import json
+
+    import fusion.eval.synth.simulate as simulate_module
+
+    _fake_bench(monkeypatch)
+    seeds: list[int] = []
+    monkeypatch.setattr(simulate_module, "simulate", lambda *a, **k: seeds.append(k["seed"]))
+
+    def fake_fuse(ctx: Any, keys: Any, fixed: Any, config: FusionConfig | None = None) -> dict[str, Any]:
+        seed = seeds[-1]  # the fleet this row fuses: its figures depend on the seed
+        return {"geo_f": 0.8 + 0.01 * seed, "sem_f": 0.4, "pose_trans_m": 0.3, "pose_rot_deg": 0.4 + 0.1 * seed,
+                "transient_survival": 0.01}
+
+    monkeypatch.setattr(bench_region, "_fuse", fake_fuse)
+    monkeypatch.setattr(bench_region, "_baseline", lambda *a: {"geo_f": 0.6, "sem_f": 0.25, "pose_trans_m": 0.9,
+                                                               "pose_rot_deg": 0.5})
+    printed: list[str] = []
+    path = tmp_path / "seeds.json"
+    result = bench_region.run_region_seeds([0, 1, 2], json_path=path, out=printed.append, preset="tiny", tiles=2,
+                                           rows=["fused", "gicp"])
+    assert seeds == [0, 1, 2] and len(printed) == 4  # each seed's table, then the summary
+    summary = result["summary"]
+    geo = summary["rows"]["fused"]["geo_f"]
+    assert geo["per_seed"] == pytest.approx([0.80, 0.81, 0.82]) and geo["mean"] == pytest.approx(0.81)
+    rot = summary["checks"]["pose_rot_deg"]
+    assert rot["per_seed"] == [True, False, False] and (rot["held"], rot["judged"]) == (1, 3)  # 0.4 / 0.5 / 0.6 vs 0.5
+    geo_check = summary["checks"]["geo_f_miss_ratio"]
+    assert geo_check["values"] == pytest.approx([0.5, 0.475, 0.45]) and geo_check["held"] == 3
+    table = printed[-1]
+    assert "across seeds 0, 1, 2 (sensor camera, preset tiny" in table
+    assert "held on 1 of 3" in table and "0.50x ok" in table and "MISSED" in table
+    saved = json.loads(path.read_text())
+    assert set(saved["seeds"]) == {"0", "1", "2"} and saved["summary"]["checks"]["pose_rot_deg"]["held"] == 1
+    with pytest.raises(ValueError, match="distinct"):
+        bench_region.run_region_seeds([1, 1], out=printed.append)
+    from fusion.eval import cli
+
+    assert cli.main(["bench", "--tiles", "1", "--seeds", "0,1"]) != 0  # the one-tile bench has no seeds option
+    with pytest.raises(SystemExit):
+        cli.main(["bench", "--seeds", "0,x"])
+
+
 def _rows() -> dict[str, dict[str, Any]]:
     """A fused row and both baseline rows; of the baselines GICP has the better F, ICP the better rotation."""
     return {"fused": {"geo_f": 0.8, "sem_f": 0.4, "pose_trans_m": 0.4, "pose_rot_deg": 0.5, "transient_survival": 0.02},
