@@ -146,7 +146,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
                             align_iterations_per_tile=args.align_iterations or base.align_iterations_per_tile)
     gps_noise = (args.gps_noise_m, args.gps_noise_deg)
     if region:  # the multi-tile bench: align the region, reconstruct every tile
-        from fusion.eval.bench_region import run_region_bench, run_region_seeds
+        from fusion.eval.bench_region import run_region_bench
+        from fusion.eval.bench_seeds import run_region_seeds
 
         bench = {"preset": args.preset, "sessions": args.sessions, "gps_noise": gps_noise, "rows": rows,
                  "config": config, "tile_size": args.tile_size, "vertex_noise_m": args.vertex_noise_m,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fusion.config import FusionConfig
-from fusion.eval import bench_region
+from fusion.eval import bench_region, bench_seeds
 from fusion.eval.bench_region import seam_gaps
 from fusion.eval.scoring import merge_meshes
 from fusion.types import FusedMesh, FusionResult
@@ -143,7 +143,7 @@ def test_seeds_each_run_their_own_fleet_and_are_judged_across(monkeypatch: pytes
                                                                "pose_rot_deg": 0.5})
     printed: list[str] = []
     path = tmp_path / "seeds.json"
-    result = bench_region.run_region_seeds([0, 1, 2], json_path=path, out=printed.append, preset="tiny", tiles=2,
+    result = bench_seeds.run_region_seeds([0, 1, 2], json_path=path, out=printed.append, preset="tiny", tiles=2,
                                            rows=["fused", "gicp"])
     assert seeds == [0, 1, 2] and len(printed) == 4  # each seed's table, then the summary
     summary = result["summary"]
@@ -159,7 +159,7 @@ def test_seeds_each_run_their_own_fleet_and_are_judged_across(monkeypatch: pytes
     saved = json.loads(path.read_text())
     assert set(saved["seeds"]) == {"0", "1", "2"} and saved["summary"]["checks"]["pose_rot_deg"]["held"] == 1
     with pytest.raises(ValueError, match="distinct"):
-        bench_region.run_region_seeds([1, 1], out=printed.append)
+        bench_seeds.run_region_seeds([1, 1], out=printed.append)
     from fusion.eval import cli
 
     assert cli.main(["bench", "--tiles", "1", "--seeds", "0,1"]) != 0  # the one-tile bench has no seeds option
