@@ -52,6 +52,7 @@ MISS_RATIO_MAX = 0.7
 TRANSIENT_MAX = 0.10
 # ... an exact fleet's F at least the baseline's, poses within this of its (m, deg)
 POSE_SLACK = (0.03, 0.05)
+VERDICT_MARK = {True: "ok", False: "MISSED", None: "n/a"}  # a condition held, missed, or not judged
 
 
 def against_baseline(rows: dict[str, dict[str, Any]], sensor: str, row: str = "fused") -> dict[str, Any] | None:
@@ -454,7 +455,6 @@ def format_region_table(report: dict[str, Any]) -> str:
                          f"{fmt(a.get('recon_train_s_per_tile'), '.1f')} s, extract {fmt(a.get('recon_extract_s_per_tile'), '.1f')} s, "
                          f"set-up {fmt(a.get('recon_setup_s_per_tile'), '.1f')} s")
         lines.append(f"  {name}: the map before: {add['before_s']:.0f} s")
-    mark = {True: "ok", False: "MISSED", None: "n/a"}
     versus = report.get("against_baseline")
     if versus:
         camera = report.get("sensor") == "camera"
@@ -466,19 +466,19 @@ def format_region_table(report: dict[str, Any]) -> str:
             uploads = versus.get(f"{key}_uploads")
             lines.append(f"    {key:<14} {fmt(fused.get(key))} vs {fmt(versus[f'baseline_{key}'])}, miss ratio "
                          f"{fmt(versus[f'{key}_miss_ratio'], '.2f')}x "
-                         f"{mark[versus['checks'].get(f'{key}_miss_ratio' if camera else key)]} (needs "
+                         f"{VERDICT_MARK[versus['checks'].get(f'{key}_miss_ratio' if camera else key)]} (needs "
                          f"{fmt(versus.get(f'{key}_needed'))}"
                          + ("" if uploads is None else f"; the uploads at their true poses: {fmt(uploads)}") + ")")
         for key in ("pose_trans_m", "pose_rot_deg"):
-            lines.append(f"    {key:<14} {fmt(fused.get(key))} vs {fmt(versus[f'baseline_{key}'])} {mark[versus['checks'][key]]}")
+            lines.append(f"    {key:<14} {fmt(fused.get(key))} vs {fmt(versus[f'baseline_{key}'])} {VERDICT_MARK[versus['checks'][key]]}")
         if camera:
             lines.append(f"    {'single-session':<14} {fmt(fused.get('transient_survival'), '.1%')} "
-                         f"{mark[versus['checks']['transient_survival']]}")
+                         f"{VERDICT_MARK[versus['checks']['transient_survival']]}")
     if fused and report.get("sensor", "exact") == "exact":  # absolute targets: the exact fleet's (issue 10)
         for key, target in TARGETS.items():
             v = fused.get(key)
             ok = None if v is None else (v >= target if key in ("geo_f", "sem_f") else v <= target)
-            lines.append(f"  target {key:<14} {fmt(v)} (target {target}) {mark[ok]}")
+            lines.append(f"  target {key:<14} {fmt(v)} (target {target}) {VERDICT_MARK[ok]}")
     return "\n".join(lines)
 
 

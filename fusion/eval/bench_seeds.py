@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from fusion.eval.bench_context import fmt
-from fusion.eval.bench_region import run_region_bench
+from fusion.eval.bench_region import VERDICT_MARK, run_region_bench
 
 SEED_FIGURES = ("geo_f", "sem_f", "pose_trans_m", "pose_rot_deg", "transient_survival")
 
@@ -53,17 +53,15 @@ def seed_summary(reports: dict[int, dict[str, Any]]) -> dict[str, Any]:
             if known:
                 rows[name][key] = {"per_seed": values, "mean": float(np.mean(known))}
     checks: dict[str, dict[str, Any]] = {}
-    for s in seeds:
-        versus = reports[s].get("against_baseline") or {}
+    verdicts = [reports[s].get("against_baseline") or {} for s in seeds]
+    for i, versus in enumerate(verdicts):
         for key, ok in versus.get("checks", {}).items():
-            entry = checks.setdefault(key, {"per_seed": [None] * len(seeds)})
-            entry["per_seed"][seeds.index(s)] = ok
+            checks.setdefault(key, {"per_seed": [None] * len(seeds)})["per_seed"][i] = ok
     for key, entry in checks.items():
         entry["held"] = sum(ok is True for ok in entry["per_seed"])
         entry["judged"] = sum(ok is not None for ok in entry["per_seed"])
-        ratio = key if key.endswith("_miss_ratio") else None
-        if ratio:
-            entry["values"] = [(reports[s].get("against_baseline") or {}).get(ratio) for s in seeds]
+        if key.endswith("_miss_ratio"):
+            entry["values"] = [versus.get(key) for versus in verdicts]
     return {"seeds": seeds, "sensor": first.get("sensor"), "preset": first.get("preset"),
             "sessions": first.get("sessions"), "gps_noise": first.get("gps_noise"), "rows": rows, "checks": checks,
             "verdict_row": (first.get("against_baseline") or {}).get("row")}
@@ -84,12 +82,11 @@ def format_seed_summary(summary: dict[str, Any]) -> str:
             f = spec.get(key, ".3f")
             lines.append(f"{name:<34} {key:<19}" + "".join(f"{fmt(v, f):>14}" for v in entry["per_seed"])
                          + f"{fmt(entry['mean'], f):>14}")
-    mark = {True: "ok", False: "MISSED", None: "n/a"}
     if summary["checks"]:
         lines.append(f"{summary.get('verdict_row')} against the best baseline of each seed's run:")
         for key, entry in summary["checks"].items():
             values = entry.get("values") or [None] * len(seeds)
-            cells = [(f"{fmt(v, '.2f')}x " if v is not None else "") + mark[ok]
+            cells = [(f"{fmt(v, '.2f')}x " if v is not None else "") + VERDICT_MARK[ok]
                      for v, ok in zip(values, entry["per_seed"], strict=True)]
             lines.append(f"  {key:<52}" + "".join(f"{c:>14}" for c in cells)
                          + f"   held on {entry['held']} of {entry['judged']}")
