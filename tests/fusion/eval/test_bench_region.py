@@ -165,6 +165,7 @@ def test_seeds_each_run_their_own_fleet_and_are_judged_across(monkeypatch: pytes
     assert cli.main(["bench", "--tiles", "1", "--seeds", "0,1"]) != 0  # the one-tile bench has no seeds option
     with pytest.raises(SystemExit):
         cli.main(["bench", "--seeds", "0,x"])
+    assert cli.main(["bench", "--seeds", "1,1"]) != 0  # the same seed twice: one line, nothing simulated
 
 
 def _rows() -> dict[str, dict[str, Any]]:
