@@ -445,6 +445,13 @@ class FusionConfig:
     # bench at the true poses, the same fields extracted both ways: exact seed 1 sem F 0.757 -> 0.762 (marking,
     # fence, pole, sign +0.01-0.02), camera seed 1 0.421 -> 0.418; faces +16 % / +28 %. Off: not worth the faces
     face_label_split: bool = False
+    # a face whose label contradicts its geometry takes the head's best label that does not
+    # (``fusion.extract.relabel_by_geometry``): a ground class on a steep face raised above the ground beside
+    # it (a pole or sign the segmenter missed and took for the pavement, a class bled up a wall's foot or a
+    # car's flank), an upright class on level ground at ground height (a wall's class bled onto the pavement)
+    label_geometry: bool = False
+    ground_classes: tuple[str, ...] = ("road", "sidewalk", "lane_marking", "terrain")
+    upright_classes: tuple[str, ...] = ("building", "fence", "pole", "traffic_sign")
     # run
     seed: int = 0
     device: str = "auto"  # "auto" → CUDA when available, else CPU
@@ -500,7 +507,7 @@ class FusionConfig:
                              f"got {self.align_incremental_iterations_per_tile}")
         if not self.refusion_band_m >= 0:
             raise ValueError(f"refusion_band_m must be >= 0, got {self.refusion_band_m}")
-        for option in ("consensus_movable", "thin_classes"):
+        for option in ("consensus_movable", "thin_classes", "ground_classes", "upright_classes"):
             unknown = [name for name in getattr(self, option) if name not in LABEL_BY_NAME]
             if unknown:
                 raise ValueError(f"{option} names unknown labels: {', '.join(unknown)}")
@@ -510,6 +517,14 @@ class FusionConfig:
     def thin_label_ids(self) -> list[int]:
         """Label ids of ``thin_classes``."""
         return [LABEL_BY_NAME[name].id for name in self.thin_classes]
+
+    def ground_label_ids(self) -> list[int]:
+        """Label ids of ``ground_classes``."""
+        return [LABEL_BY_NAME[name].id for name in self.ground_classes]
+
+    def upright_label_ids(self) -> list[int]:
+        """Label ids of ``upright_classes``."""
+        return [LABEL_BY_NAME[name].id for name in self.upright_classes]
 
     def movable_label_ids(self) -> list[int]:
         """Label ids of ``consensus_movable``."""

@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
@@ -372,6 +373,71 @@ def split_label_boundaries(
             out_fl.astype(np.asarray(face_labels).dtype), sm)
 
 
+# label geometry (``relabel_by_geometry``): a face is steep below this |n_z| (45°), level above this one (~25°)
+STEEP_NZ = 0.7
+LEVEL_NZ = 0.9
+# ... raised when its centre stands more than this above the lowest mesh vertex within GROUND_REACH_M
+# horizontally (a kerb is ~0.15 m), at ground level within AT_GROUND_M of it
+RAISED_M = 0.4
+AT_GROUND_M = 0.2
+GROUND_REACH_M = 1.25
+GROUND_CELL_M = 0.5
+
+
+def ground_heights(verts: np.ndarray, points: np.ndarray, reach_m: float = GROUND_REACH_M,
+                   cell_m: float = GROUND_CELL_M) -> np.ndarray:
+    """Height of each of ``points`` (n, 3) above the lowest of ``verts`` (m, 3) within about ``reach_m``
+    horizontally (square cells of ``cell_m``); 0 for a point with no vertex in reach."""
+    pts = np.asarray(points, np.float64)
+    if not len(pts) or not len(verts):
+        return np.zeros(len(pts))
+    v = np.asarray(verts, np.float64)
+    lo = np.floor(np.minimum(v[:, :2].min(axis=0), pts[:, :2].min(axis=0)) / cell_m).astype(np.int64)
+    vij = np.floor(v[:, :2] / cell_m).astype(np.int64) - lo
+    pij = np.floor(pts[:, :2] / cell_m).astype(np.int64) - lo
+    shape = tuple(int(n) for n in np.maximum(vij.max(axis=0), pij.max(axis=0)) + 1)
+    low = np.full(shape, np.inf)
+    np.minimum.at(low, (vij[:, 0], vij[:, 1]), v[:, 2])
+    low = minimum_filter(low, size=2 * math.ceil(reach_m / cell_m) + 1, mode="constant", cval=np.inf)
+    ground = low[pij[:, 0], pij[:, 1]]
+    return np.where(np.isfinite(ground), pts[:, 2] - ground, 0.0)
+
+
+def relabel_by_geometry(verts: np.ndarray, faces: np.ndarray, face_labels: np.ndarray, ground: Sequence[int],
+                        upright: Sequence[int], label_among: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                        num_classes: int) -> tuple[np.ndarray, int]:
+    """Face labels that contradict the face's own geometry replaced by the head's best label that does not.
+
+    A camera segmenter's mistakes are 2D: a class bleeds across a border in the image and a pole or sign it
+    misses takes the class around it, which on the ground is the pavement. Lifted into 3D those mistakes
+    put a ground class (``ground``: road, sidewalk, markings, terrain) on a steep face well above the
+    ground beside it (a pole, a wall's foot, a car's flank) and an upright class (``upright``: buildings,
+    fences, poles, signs) on level ground at ground height. Such a face takes ``label_among(centres,
+    allowed)`` — the semantic head's argmax over the ``allowed`` (num_classes,) mask of classes — over every
+    class but its own group's. The ground is the lowest mesh vertex within ``GROUND_REACH_M``
+    (``ground_heights``), so slopes and kerbs stay ground. Returns the labels and how many changed."""
+    fl = np.asarray(face_labels).copy()
+    if not len(faces):
+        return fl, 0
+    tri = np.asarray(verts, np.float64)[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nz = n[:, 2] / np.maximum(np.linalg.norm(n, axis=1), 1e-12)  # normals point to free space
+    centres = tri.mean(axis=1)
+    height = ground_heights(verts, centres)
+    changed = 0
+    for group, wrong in ((ground, (np.abs(nz) < STEEP_NZ) & (height > RAISED_M)),
+                         (upright, (nz > LEVEL_NZ) & (height < AT_GROUND_M))):
+        idx = np.flatnonzero(wrong & np.isin(fl, np.asarray(group, np.int64)))
+        if not len(idx):
+            continue
+        allowed = np.ones(num_classes, bool)
+        allowed[0] = False
+        allowed[np.asarray(group, np.int64)] = False
+        fl[idx] = np.asarray(label_among(centres[idx], allowed)).astype(fl.dtype)
+        changed += len(idx)
+    return fl, changed
+
+
 def _face_labels(vl: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a, b, c = vl[faces[:, 0]], vl[faces[:, 1]], vl[faces[:, 2]]
     return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
@@ -397,6 +463,7 @@ def extract_mesh(
     split_labels: bool = False,
     detail: tuple[np.ndarray, np.ndarray] | None = None,
     detail_m: float = 0.0,
+    relabel: tuple[Sequence[int], Sequence[int], Callable[[np.ndarray, np.ndarray], np.ndarray], int] | None = None,
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
@@ -411,7 +478,9 @@ def extract_mesh(
     ``centroid`` or ``vote`` labels): faces on a class boundary split in four, each quarter labelled at its
     centroid (``split_label_boundaries``). ``detail`` (vertices (n, 3) map frame, faces (m, 3)): the posed
     uploads; with ``detail_m`` > 0 their faces farther than that from the field's surface, where it is
-    confident, join the mesh as measured (``add_detail``).
+    confident, join the mesh as measured (``add_detail``). ``relabel`` (ground label ids, upright label ids,
+    the head's argmax among allowed classes, class count): faces whose label contradicts their geometry take
+    the best other label (``relabel_by_geometry``), the detail's faces too.
     """
     near = None
     if support is not None and support_m > 0:
@@ -444,6 +513,8 @@ def extract_mesh(
             verts, faces, conf, vl, fl, stats["detail_faces"] = add_detail(
                 verts, faces, conf, vl, fl, detail, tile, z_lat, detail_m, c_th, attr_fn,
                 label_at if face_labels in ("centroid", "vote") else None, voxel_m)
+        if relabel is not None:
+            fl, stats["relabelled_faces"] = relabel_by_geometry(verts, faces, fl, *relabel)
         stats["faces"] = int(len(faces))
         if not len(faces):
             return FusedMesh.empty(), border, stats

@@ -22,6 +22,7 @@ from fusion.config import FusionConfig
 from fusion.errors import FusionError
 from fusion.extract import extract_mesh
 from fusion.field import SemanticSDFField, field_from_state, field_state
+from fusion.labels import NUM_CLASSES
 from fusion.losses import field_losses, total_loss
 from fusion.poses import PoseSet, odometry_consistent_start
 from fusion.runtime import cpu_threads, reproducible, resolve_device
@@ -341,6 +342,9 @@ def _extract(
         split_labels=config.face_label_split,
         detail=_posed_uploads(problem, config.c_th, tile) if config.detail_m > 0 else None,
         detail_m=config.detail_m,
+        relabel=(config.ground_label_ids(), config.upright_label_ids(),
+                 _label_fn(field, problem.origin, config.extract_chunk, dev), NUM_CLASSES)
+        if config.label_geometry else None,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )
 
@@ -409,6 +413,23 @@ def _sdf_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torch.
                 x = torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
                 out[a : a + chunk] = field.sdf(x).double().cpu().numpy()
         return out
+
+    return fn
+
+
+def _label_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torch.device):  # noqa: ANN202
+    """Map-frame numpy query of the head's argmax label (n,) among the classes an ``allowed`` (C,) mask keeps."""
+
+    def fn(x_map: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        labels = np.empty(len(x_map), np.int64)
+        barred = torch.tensor(~np.asarray(allowed, bool), device=dev)
+        with torch.no_grad():
+            for a in range(0, len(x_map), chunk):
+                x = torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
+                logits = field(x)[2]
+                assert logits is not None
+                labels[a : a + chunk] = logits.masked_fill(barred, -torch.inf).argmax(-1).cpu().numpy()
+        return labels
 
     return fn
 

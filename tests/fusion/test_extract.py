@@ -458,3 +458,56 @@ def test_detail_faces_are_those_farther_than_the_gap_from_the_dense_surface_samp
     inside = (c[:, 0] < 8.0) & (c[:, 1] < 8.0)
     want = np.flatnonzero(inside & ~np.isfinite(dense))
     assert 100 < len(want) < 2500 and np.array_equal(np.sort(got), want)
+
+
+def test_labels_that_contradict_the_geometry_take_the_heads_best_other_label() -> None:
+    """Ground at z = 1 with a 0.3 m kerb at x = 6.1, a 0.8 m pillar from the ground to z = 3 at (3, 4). The head
+    calls the pillar's lower part sidewalk (a pole the segmenter missed: its second choice is pole) and a level
+    strip of the ground building (a wall's class bled onto the pavement: second choice sidewalk). With the
+    relabelling the raised steep sidewalk faces become pole, the level building faces at ground height
+    sidewalk; the kerb's steep faces (raised only 0.3 m) and the pillar's foot stay sidewalk, its top pole."""
+    sidewalk, building, pole = 2, 5, 7
+
+    def sdf(x: np.ndarray) -> np.ndarray:
+        ground = x[:, 2] - np.where(x[:, 0] > 6.1, 1.3, 1.0)
+        d = np.abs(x - np.array([3.0, 4.0, 2.0])) - np.array([0.4, 0.4, 1.0])
+        pillar = np.linalg.norm(np.maximum(d, 0), axis=1) + np.minimum(d.max(axis=1), 0)
+        return np.minimum(ground, pillar)
+
+    def logits(x: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(x), 12))
+        on_pillar = (np.abs(x[:, 0] - 3.0) < 0.6) & (np.abs(x[:, 1] - 4.0) < 0.6) & (x[:, 2] > 1.1)
+        strip = (x[:, 0] > 1.0) & (x[:, 0] < 2.0) & ~on_pillar
+        out[:, sidewalk] = 3.0
+        out[:, pole] = np.where(on_pillar, np.where(x[:, 2] > 2.5, 4.0, 2.0), 0.0)
+        out[:, building] = np.where(strip, 4.0, 1.0)
+        return out
+
+    def attrs(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.ones(len(x)), logits(x).argmax(axis=1)
+
+    def label_among(x: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        return np.where(allowed, logits(x), -np.inf).argmax(axis=1)
+
+    tile = TileSpec(0, 0, 8.0)
+    plain, _, _ = extract_mesh(sdf, attrs, tile, (0.0, 4.0), 0.25, face_labels="centroid")
+    mesh, _, stats = extract_mesh(sdf, attrs, tile, (0.0, 4.0), 0.25, face_labels="centroid",
+                                  relabel=([1, 2, 3, 4], [5, 6, 7, 8], label_among, 12))
+    assert np.array_equal(mesh.faces, plain.faces)  # labels only
+    tri = mesh.vertices[mesh.faces].astype(np.float64)
+    c = tri.mean(axis=1)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    steep = np.abs(n[:, 2]) < 0.5 * np.linalg.norm(n, axis=1)
+    pillar = (np.abs(c[:, 0] - 3.0) < 0.6) & (np.abs(c[:, 1] - 4.0) < 0.6) & (c[:, 2] > 1.1)
+    sides_low = pillar & steep & (c[:, 2] > 1.5) & (c[:, 2] < 2.4)
+    assert sides_low.sum() > 20 and np.all(plain.face_labels[sides_low] == sidewalk)
+    assert np.all(mesh.face_labels[sides_low] == pole)
+    foot = pillar & steep & (c[:, 2] < 1.3)
+    assert foot.any() and np.all(mesh.face_labels[foot] == sidewalk)
+    assert np.all(mesh.face_labels[pillar & (c[:, 2] > 2.9)] == pole)
+    strip = (c[:, 0] > 1.1) & (c[:, 0] < 1.9) & ~steep
+    assert strip.sum() > 20 and np.all(plain.face_labels[strip] == building)
+    assert np.all(mesh.face_labels[strip] == sidewalk)
+    kerb = (np.abs(c[:, 0] - 6.1) < 0.3) & (np.abs(n[:, 2]) < 0.7 * np.linalg.norm(n, axis=1))
+    assert kerb.any() and np.all(mesh.face_labels[kerb] == sidewalk)
+    assert stats["relabelled_faces"] == int((mesh.face_labels != plain.face_labels).sum())

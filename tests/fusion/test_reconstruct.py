@@ -271,3 +271,35 @@ def test_upload_detail_candidates_are_only_faces_the_consensus_kept() -> None:
 
     assert on_obstacle(everything[1]).sum() > 50 and on_obstacle(kept[1]).sum() <= 0.05 * on_obstacle(everything[1]).sum()
     assert on_ground(kept[1]).sum() >= 0.9 * on_ground(everything[1]).sum()
+
+
+def test_label_geometry_asks_the_head_for_its_best_allowed_class() -> None:
+    """``label_geometry`` runs the relabelling in the tile's extraction (its count in the metrics), and the
+    query it uses returns the head's argmax where every class is allowed and its best other class where
+    that one is barred."""
+    import torch
+
+    from fusion.field import field_from_state
+    from fusion.labels import NUM_CLASSES
+    from fusion.reconstruct import _attr_fn, _label_fn
+
+    cfg = tiny_config(label_geometry=True)
+    subs, _ = two_sessions()
+    res = reconstruct_tile(subs, TILE, cfg)
+    assert len(res.mesh.faces) > 1000 and res.metrics["extract"]["relabelled_faces"] >= 0
+    assert "relabelled_faces" not in reconstruct_tile(subs, TILE, tiny_config()).metrics["extract"]
+    assert res.field_state is not None
+    field = field_from_state(res.field_state, cfg)
+    field.eval()
+    field.set_active_levels(cfg.num_levels)
+    origin = np.zeros(3)
+    x = res.mesh.vertices.astype(np.float64)
+    best = _attr_fn(field, origin, 128, torch.device("cpu"))(x)[1]
+    among = _label_fn(field, origin, 128, torch.device("cpu"))
+    assert np.array_equal(among(x, np.ones(NUM_CLASSES, bool)), best)
+    top = np.bincount(best).argmax()
+    barred = np.ones(NUM_CLASSES, bool)
+    barred[top] = False
+    other = among(x, barred)
+    assert (best == top).any() and (best != top).any()
+    assert not (other == top).any() and np.array_equal(other[best != top], best[best != top])
