@@ -30,7 +30,9 @@ Deviations from the paper (DESIGN.md), all for the CPU preset's short schedule:
   of those classes move back in by as much (``thin_deflate``), so the map reports them where they are.
 - Face labels are the semantic head's argmax at each face's centroid (``face_labels``), not the
   majority of its vertex labels: a 0.2 m lane marking between 0.25 m lattice columns has no vertex
-  on it.
+  on it. A label that contradicts its face's geometry (a ground class on a steep face raised above the
+  ground beside it, any other class on level ground at ground height) is replaced by the head's best label
+  of the other group (``label_geometry``): a camera segmenter's 2D mistakes, lifted into 3D.
 - Progressive LOD starts at 3 of 12 levels (``lod_start_levels``; ~2 m cells on a 64 m tile) rather
   than a finer start: with 6 levels (~1 m cells) the field fitted sessions ~1 m apart as two surfaces
   before the poses had moved, and the pose optimisation stalled there (bench seed 2, 3 sessions).
@@ -448,10 +450,12 @@ class FusionConfig:
     # a face whose label contradicts its geometry takes the head's best label that does not
     # (``fusion.extract.relabel_by_geometry``): a ground class on a steep face raised above the ground beside
     # it (a pole or sign the segmenter missed and took for the pavement, a class bled up a wall's foot or a
-    # car's flank), an upright class on level ground at ground height (a wall's class bled onto the pavement)
-    label_geometry: bool = False
+    # car's flank), any other class on level ground at ground height (bled onto the pavement around the
+    # object). Kept fields relabelled offline (3x3, seed's default -> on, sem F): camera 0 0.398 -> 0.430,
+    # camera 1 0.407 -> 0.439, camera 3 0.336 -> 0.352, exact 0 0.814 -> 0.860 (docs/METHOD_LOG.md, "Labels
+    # that contradict the geometry")
+    label_geometry: bool = True
     ground_classes: tuple[str, ...] = ("road", "sidewalk", "lane_marking", "terrain")
-    upright_classes: tuple[str, ...] = ("building", "fence", "pole", "traffic_sign")
     # run
     seed: int = 0
     device: str = "auto"  # "auto" → CUDA when available, else CPU
@@ -507,7 +511,7 @@ class FusionConfig:
                              f"got {self.align_incremental_iterations_per_tile}")
         if not self.refusion_band_m >= 0:
             raise ValueError(f"refusion_band_m must be >= 0, got {self.refusion_band_m}")
-        for option in ("consensus_movable", "thin_classes", "ground_classes", "upright_classes"):
+        for option in ("consensus_movable", "thin_classes", "ground_classes"):
             unknown = [name for name in getattr(self, option) if name not in LABEL_BY_NAME]
             if unknown:
                 raise ValueError(f"{option} names unknown labels: {', '.join(unknown)}")
@@ -521,10 +525,6 @@ class FusionConfig:
     def ground_label_ids(self) -> list[int]:
         """Label ids of ``ground_classes``."""
         return [LABEL_BY_NAME[name].id for name in self.ground_classes]
-
-    def upright_label_ids(self) -> list[int]:
-        """Label ids of ``upright_classes``."""
-        return [LABEL_BY_NAME[name].id for name in self.upright_classes]
 
     def movable_label_ids(self) -> list[int]:
         """Label ids of ``consensus_movable``."""

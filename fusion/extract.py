@@ -404,18 +404,21 @@ def ground_heights(verts: np.ndarray, points: np.ndarray, reach_m: float = GROUN
 
 
 def relabel_by_geometry(verts: np.ndarray, faces: np.ndarray, face_labels: np.ndarray, ground: Sequence[int],
-                        upright: Sequence[int], label_among: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                        num_classes: int) -> tuple[np.ndarray, int]:
+                        label_among: Callable[[np.ndarray, np.ndarray], np.ndarray], num_classes: int,
+                        ) -> tuple[np.ndarray, int]:
     """Face labels that contradict the face's own geometry replaced by the head's best label that does not.
 
     A camera segmenter's mistakes are 2D: a class bleeds across a border in the image and a pole or sign it
     misses takes the class around it, which on the ground is the pavement. Lifted into 3D those mistakes
     put a ground class (``ground``: road, sidewalk, markings, terrain) on a steep face well above the
-    ground beside it (a pole, a wall's foot, a car's flank) and an upright class (``upright``: buildings,
-    fences, poles, signs) on level ground at ground height. Such a face takes ``label_among(centres,
-    allowed)`` — the semantic head's argmax over the ``allowed`` (num_classes,) mask of classes — over every
-    class but its own group's. The ground is the lowest mesh vertex within ``GROUND_REACH_M``
-    (``ground_heights``), so slopes and kerbs stay ground. Returns the labels and how many changed."""
+    ground beside it (a pole, a wall's foot, a car's flank), and a class of what stands on the ground
+    (every other class: walls, fences, poles, signs, vegetation, cars, obstacles) on level ground at ground
+    height, where it bled onto the pavement around the object (level vegetation at ground height is
+    terrain by the labels' own definition). Such a face takes ``label_among(centres, allowed)`` — the
+    semantic head's argmax over the ``allowed`` (num_classes,) mask — over the other group's classes.
+    The ground is the lowest mesh vertex within ``GROUND_REACH_M`` (``ground_heights``), so slopes and
+    kerbs stay ground and a roof or a car's bonnet is not at ground height. Returns the labels and how
+    many changed."""
     fl = np.asarray(face_labels).copy()
     if not len(faces):
         return fl, 0
@@ -424,17 +427,18 @@ def relabel_by_geometry(verts: np.ndarray, faces: np.ndarray, face_labels: np.nd
     nz = n[:, 2] / np.maximum(np.linalg.norm(n, axis=1), 1e-12)  # normals point to free space
     centres = tri.mean(axis=1)
     height = ground_heights(verts, centres)
+    is_ground = np.zeros(num_classes, bool)
+    is_ground[np.asarray(ground, np.int64)] = True
+    labelled_ground = is_ground[fl.astype(np.int64)]
     changed = 0
-    for group, wrong in ((ground, (np.abs(nz) < STEEP_NZ) & (height > RAISED_M)),
-                         (upright, (nz > LEVEL_NZ) & (height < AT_GROUND_M))):
-        idx = np.flatnonzero(wrong & np.isin(fl, np.asarray(group, np.int64)))
-        if not len(idx):
-            continue
-        allowed = np.ones(num_classes, bool)
-        allowed[0] = False
-        allowed[np.asarray(group, np.int64)] = False
-        fl[idx] = np.asarray(label_among(centres[idx], allowed)).astype(fl.dtype)
-        changed += len(idx)
+    for wrong, allowed in ((labelled_ground & (np.abs(nz) < STEEP_NZ) & (height > RAISED_M), ~is_ground),
+                           (~labelled_ground & (fl != 0) & (nz > LEVEL_NZ) & (height < AT_GROUND_M), is_ground)):
+        idx = np.flatnonzero(wrong)
+        if len(idx):
+            keep = allowed.copy()
+            keep[0] = False
+            fl[idx] = np.asarray(label_among(centres[idx], keep)).astype(fl.dtype)
+            changed += len(idx)
     return fl, changed
 
 
@@ -463,7 +467,7 @@ def extract_mesh(
     split_labels: bool = False,
     detail: tuple[np.ndarray, np.ndarray] | None = None,
     detail_m: float = 0.0,
-    relabel: tuple[Sequence[int], Sequence[int], Callable[[np.ndarray, np.ndarray], np.ndarray], int] | None = None,
+    relabel: tuple[Sequence[int], Callable[[np.ndarray, np.ndarray], np.ndarray], int] | None = None,
 ) -> tuple[FusedMesh, dict[str, dict[str, Any]], dict[str, Any]]:
     """Fused mesh of one tile (map frame) from an SDF (positive in free space).
 
@@ -478,8 +482,8 @@ def extract_mesh(
     ``centroid`` or ``vote`` labels): faces on a class boundary split in four, each quarter labelled at its
     centroid (``split_label_boundaries``). ``detail`` (vertices (n, 3) map frame, faces (m, 3)): the posed
     uploads; with ``detail_m`` > 0 their faces farther than that from the field's surface, where it is
-    confident, join the mesh as measured (``add_detail``). ``relabel`` (ground label ids, upright label ids,
-    the head's argmax among allowed classes, class count): faces whose label contradicts their geometry take
+    confident, join the mesh as measured (``add_detail``). ``relabel`` (ground label ids, the head's argmax
+    among allowed classes, class count): faces whose label contradicts their geometry take
     the best other label (``relabel_by_geometry``), the detail's faces too.
     """
     near = None

@@ -342,8 +342,7 @@ def _extract(
         split_labels=config.face_label_split,
         detail=_posed_uploads(problem, config.c_th, tile) if config.detail_m > 0 else None,
         detail_m=config.detail_m,
-        relabel=(config.ground_label_ids(), config.upright_label_ids(),
-                 _label_fn(field, problem.origin, config.extract_chunk, dev), NUM_CLASSES)
+        relabel=(config.ground_label_ids(), _label_fn(field, problem.origin, config.extract_chunk, dev), NUM_CLASSES)
         if config.label_geometry else None,
         step=(lambda done, total: progress(ProgressEvent(done, total, {}, "extract"))) if progress else None,
     )

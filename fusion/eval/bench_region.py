@@ -525,6 +525,7 @@ COMPONENTS: tuple[str, ...] = (
     "detail_m=0",  # upload faces the field did not reconstruct (0.4 m from its surface, confident) left out
     "face_labels=vote",  # face labels voted by the posed input points near each face
     "face_label_split=true",  # faces on a class boundary split in four, each quarter labelled at its centroid
+    "label_geometry=false",  # labels that contradict their face's geometry (ground class up a pole) kept
 )
 
 

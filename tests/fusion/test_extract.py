@@ -492,7 +492,7 @@ def test_labels_that_contradict_the_geometry_take_the_heads_best_other_label() -
     tile = TileSpec(0, 0, 8.0)
     plain, _, _ = extract_mesh(sdf, attrs, tile, (0.0, 4.0), 0.25, face_labels="centroid")
     mesh, _, stats = extract_mesh(sdf, attrs, tile, (0.0, 4.0), 0.25, face_labels="centroid",
-                                  relabel=([1, 2, 3, 4], [5, 6, 7, 8], label_among, 12))
+                                  relabel=([1, 2, 3, 4], label_among, 12))
     assert np.array_equal(mesh.faces, plain.faces)  # labels only
     tri = mesh.vertices[mesh.faces].astype(np.float64)
     c = tri.mean(axis=1)
