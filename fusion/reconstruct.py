@@ -11,6 +11,7 @@ losses (SDF, normal, semantic, eikonal, confidence, odometry, GPS prior) → Ada
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -402,15 +403,20 @@ def _posed_pool(problem: TileProblem) -> torch.Tensor:
         return (pose[:, :3, :3] @ problem.pool.points[:, :, None])[:, :, 0] + pose[:, :3, 3]
 
 
+def _chunks(x_map: np.ndarray, origin: np.ndarray, chunk: int, dev: torch.device) -> Iterator[tuple[slice, torch.Tensor]]:
+    """Map-frame query points in chunks of ``chunk``: (their slice, tile-frame float32 tensor on ``dev``)."""
+    for a in range(0, len(x_map), chunk):
+        yield slice(a, a + chunk), torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
+
+
 def _sdf_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torch.device):  # noqa: ANN202
     """Map-frame numpy SDF query (no grad, chunked)."""
 
     def fn(x_map: np.ndarray) -> np.ndarray:
         out = np.empty(len(x_map), np.float64)
         with torch.no_grad():
-            for a in range(0, len(x_map), chunk):
-                x = torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
-                out[a : a + chunk] = field.sdf(x).double().cpu().numpy()
+            for part, x in _chunks(x_map, origin, chunk, dev):
+                out[part] = field.sdf(x).double().cpu().numpy()
         return out
 
     return fn
@@ -423,11 +429,10 @@ def _label_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torc
         labels = np.empty(len(x_map), np.int64)
         barred = torch.tensor(~np.asarray(allowed, bool), device=dev)
         with torch.no_grad():
-            for a in range(0, len(x_map), chunk):
-                x = torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
+            for part, x in _chunks(x_map, origin, chunk, dev):
                 logits = field(x)[2]
                 assert logits is not None
-                labels[a : a + chunk] = logits.masked_fill(barred, -torch.inf).argmax(-1).cpu().numpy()
+                labels[part] = logits.masked_fill(barred, -torch.inf).argmax(-1).cpu().numpy()
         return labels
 
     return fn
@@ -440,12 +445,11 @@ def _attr_fn(field: SemanticSDFField, origin: np.ndarray, chunk: int, dev: torch
         conf = np.empty(len(x_map), np.float32)
         labels = np.empty(len(x_map), np.int64)
         with torch.no_grad():
-            for a in range(0, len(x_map), chunk):
-                x = torch.tensor(x_map[a : a + chunk] - origin, dtype=torch.float32, device=dev)
+            for part, x in _chunks(x_map, origin, chunk, dev):
                 _, c_logit, logits = field(x)
                 assert logits is not None
-                conf[a : a + chunk] = torch.sigmoid(c_logit).cpu().numpy()
-                labels[a : a + chunk] = logits.argmax(-1).cpu().numpy()
+                conf[part] = torch.sigmoid(c_logit).cpu().numpy()
+                labels[part] = logits.argmax(-1).cpu().numpy()
         return conf, labels
 
     return fn
